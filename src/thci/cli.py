@@ -1,0 +1,86 @@
+"""The ``thci`` command line: ``thci train``, ``thci evaluate``, ``thci envs``.
+
+User mistakes raise :class:`~thci.errors.ThciError`; :func:`main` prints its one line and
+exits with status 2, so no traceback is ever shown for them.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any
+
+import tyro
+
+from thci.config import TrainConfig
+from thci.errors import ThciError
+
+
+@dataclass
+class EvaluateArgs:
+    """Play episodes with a trained run's latest checkpoint."""
+
+    run_dir: Annotated[Path, tyro.conf.Positional]
+    """Run directory written by `thci train`."""
+    episodes: int = 100
+    """Episodes to play."""
+    greedy: bool = True
+    """Take the most likely action (else sample from the policy)."""
+    seed: int = 10_000
+    """Seed of the evaluation episodes."""
+
+
+@dataclass
+class EnvsArgs:
+    """List thci's built-in environments."""
+
+
+def format_table(rows: dict[str, Any]) -> str:
+    """Two-column text table of `rows`."""
+    width = max(len(k) for k in rows)
+    lines = [f"{'':-<{width}}-+-{'':-<24}"]
+    for key, value in rows.items():
+        if isinstance(value, float):
+            value = f"{value:.4g}"
+        lines.append(f"{key:<{width}} | {value}")
+    return "\n".join([lines[0], *lines[1:], lines[0]])
+
+
+def run_command(args: TrainConfig | EvaluateArgs | EnvsArgs) -> None:
+    """Execute one parsed command."""
+    if isinstance(args, TrainConfig):
+        from thci.rl.trainer import train
+
+        summary = train(args)
+        print(format_table(summary))
+    elif isinstance(args, EvaluateArgs):
+        from thci.rl.evaluate import evaluate
+
+        print(format_table(evaluate(args.run_dir, args.episodes, args.greedy, args.seed)))
+    else:
+        import gymnasium as gym
+
+        import thci  # noqa: F401  (registers the environments)
+
+        for env_id in sorted(k for k in gym.registry if k.startswith("thci/")):
+            print(env_id)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of the ``thci`` console script."""
+    args = tyro.extras.subcommand_cli_from_dict(
+        {"train": TrainConfig, "evaluate": EvaluateArgs, "envs": EnvsArgs},
+        args=argv,
+        prog="thci",
+        description="History-based RL with causal memory (T-HCI).",
+    )
+    try:
+        run_command(args)
+    except ThciError as exc:
+        print(f"thci: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,165 @@
+"""Typed hyperparameters of a training run (CleanRL style: one flat dataclass, one flag each).
+
+`TrainConfig` is what `thci train` parses from the command line and what a run directory
+stores in ``config.json``. :meth:`TrainConfig.validate` turns every invalid value into a
+one-line :class:`~thci.errors.ThciError` before anything is created on disk.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from thci.errors import ThciError
+
+Method = Literal["lstm", "gru"]
+Algo = Literal["ppo"]
+
+# Fields that may differ between a run and its resumption: where it lives, the resume flag
+# itself, how long to train (extending a finished run is legitimate) and machine settings.
+RESUMABLE_DIFFERENCES = frozenset({"run_dir", "resume", "total_steps", "torch_threads", "progress"})
+
+
+@dataclass
+class TrainConfig:
+    """Train an agent with recurrent memory on a gymnasium environment."""
+
+    env: str = "thci/PaperMaze-L1-v0"
+    """Registered gymnasium id (discrete actions; Box, Discrete or MultiDiscrete observations)."""
+    method: Method = "lstm"
+    """Memory of the agent."""
+    algo: Algo = "ppo"
+    """RL algorithm."""
+    total_steps: int = 100_000
+    """Environment steps to train for (summed over the parallel environments)."""
+    seed: int = 1
+    """Seed of the run: the same seed gives the same result."""
+    run_dir: Path | None = None
+    """Run directory (default: runs/<env>__<method>__<algo>__s<seed>__<time>)."""
+    resume: bool = False
+    """Continue the run in --run-dir from its last checkpoint."""
+
+    # Rollouts
+    num_envs: int = 16
+    """Parallel environments."""
+    num_steps: int = 64
+    """Steps per environment per rollout (a rollout holds num_envs * num_steps steps)."""
+    vectorization: Literal["auto", "native", "sync"] = "auto"
+    """auto: the environment's native batched implementation when it has one, else sync."""
+
+    # Model
+    encoder_size: int = 64
+    """Width of the observation encoder."""
+    hidden_size: int = 64
+    """Width of the recurrent memory."""
+
+    # PPO
+    learning_rate: float = 1e-3
+    anneal_lr: bool = False
+    """Anneal the learning rate linearly to 0 over total_steps."""
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    update_epochs: int = 4
+    num_minibatches: int = 4
+    """Minibatches per epoch; each holds whole episode segments, never cut sequences."""
+    clip_coef: float = 0.2
+    ent_coef: float = 0.01
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    norm_adv: bool = True
+
+    # Success and solving
+    solve_threshold: float = 0.9
+    """The run is solved when the success rate over the last solve_window episodes reaches this."""
+    solve_window: int = 100
+    success_return: float | None = None
+    """For environments without info['success']: an episode whose return reaches this succeeds."""
+    stop_on_solve: bool = False
+    """Stop training as soon as the run is solved."""
+
+    # Bookkeeping
+    checkpoint_every: int = 20
+    """Write a checkpoint every this many updates (and always at the end)."""
+    torch_threads: int = 1
+    """torch intra-op threads (small recurrent nets run fastest on one thread)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def validate(self) -> None:
+        """Raise ThciError naming the first invalid value and how to fix it."""
+        positive_ints = {
+            "total_steps": self.total_steps,
+            "num_envs": self.num_envs,
+            "num_steps": self.num_steps,
+            "encoder_size": self.encoder_size,
+            "hidden_size": self.hidden_size,
+            "update_epochs": self.update_epochs,
+            "num_minibatches": self.num_minibatches,
+            "solve_window": self.solve_window,
+            "checkpoint_every": self.checkpoint_every,
+            "torch_threads": self.torch_threads,
+        }
+        for name, value in positive_ints.items():
+            if value <= 0:
+                raise ThciError(f"--{_flag(name)} must be a positive integer, got {value}")
+        floats = {
+            "learning_rate": self.learning_rate,
+            "gamma": self.gamma,
+            "gae_lambda": self.gae_lambda,
+            "clip_coef": self.clip_coef,
+            "ent_coef": self.ent_coef,
+            "vf_coef": self.vf_coef,
+            "max_grad_norm": self.max_grad_norm,
+            "solve_threshold": self.solve_threshold,
+        }
+        for name, value in floats.items():
+            if not math.isfinite(value):
+                raise ThciError(f"--{_flag(name)} must be a finite number, got {value}")
+        if self.learning_rate <= 0:
+            raise ThciError(f"--learning-rate must be > 0, got {self.learning_rate}")
+        for name in ("gamma", "gae_lambda", "solve_threshold"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ThciError(f"--{_flag(name)} must lie in [0, 1], got {value}")
+        for name in ("clip_coef", "ent_coef", "vf_coef", "max_grad_norm"):
+            if getattr(self, name) < 0:
+                raise ThciError(f"--{_flag(name)} must be >= 0, got {getattr(self, name)}")
+        if self.num_minibatches > self.num_envs:
+            raise ThciError(
+                f"--num-minibatches ({self.num_minibatches}) cannot exceed --num-envs "
+                f"({self.num_envs}): each minibatch needs whole sequences"
+            )
+        if self.resume and self.run_dir is None:
+            raise ThciError("--resume needs --run-dir: name the run directory to continue")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (paths as strings)."""
+        data = dataclasses.asdict(self)
+        data["run_dir"] = None if self.run_dir is None else str(self.run_dir)
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
+        """Inverse of :meth:`to_dict`; unknown keys are an error (a config from another version)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ThciError(
+                f"config has unknown fields {unknown}: written by another thci version?"
+            )
+        values = dict(data)
+        if values.get("run_dir") is not None:
+            values["run_dir"] = Path(values["run_dir"])
+        return cls(**values)
+
+    def differences(self, other: TrainConfig) -> list[str]:
+        """Names of fields that differ and may not differ on resume."""
+        mine, theirs = self.to_dict(), other.to_dict()
+        return [k for k in mine if k not in RESUMABLE_DIFFERENCES and mine[k] != theirs[k]]
+
+
+def _flag(name: str) -> str:
+    return name.replace("_", "-")

@@ -1,0 +1,44 @@
+"""Built-in environments, registered with gymnasium on import.
+
+``thci/PaperMaze-L1-v0`` ... ``thci/PaperMaze-L4-v0`` are the paper's Maze levels 1-4. Both
+``gym.make`` (single :class:`PaperMazeEnv`) and ``gym.make_vec`` (native batched
+:class:`PaperMazeVectorEnv`, the default vectorization mode for these ids) work. No
+``max_episode_steps`` is registered: the envs truncate themselves after 30 steps, and a
+``TimeLimit`` wrapper on top would only duplicate that (pass ``max_steps=`` to change it).
+"""
+
+import gymnasium as gym
+
+from thci.envs.paper_maze import (
+    MazeLevel,
+    PaperMazeEnv,
+    PaperMazeVectorEnv,
+    available_levels,
+    load_maze_level,
+)
+
+__all__ = [
+    "PAPER_MAZE_IDS",
+    "MazeLevel",
+    "PaperMazeEnv",
+    "PaperMazeVectorEnv",
+    "load_maze_level",
+]
+
+PAPER_MAZE_IDS: tuple[str, ...] = tuple(f"thci/PaperMaze-L{k}-v0" for k in available_levels())
+
+
+def _register_paper_mazes() -> None:
+    for level, env_id in zip(available_levels(), PAPER_MAZE_IDS, strict=True):
+        # Re-importing (e.g. importlib.reload) must not make gymnasium warn about overriding.
+        if env_id in gym.registry:
+            continue
+        gym.register(
+            id=env_id,
+            entry_point="thci.envs.paper_maze:PaperMazeEnv",
+            vector_entry_point="thci.envs.paper_maze:PaperMazeVectorEnv",
+            kwargs={"level": level},
+        )
+
+
+_register_paper_mazes()

@@ -1,0 +1,86 @@
+"""The actor-critic agent: observation encoder -> pluggable memory -> policy and value heads.
+
+The same agent serves rollouts (one step for N environments at a time, :meth:`step`) and
+updates (whole padded sequences, :meth:`forward`). Which memory it uses is the ``--method``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from thci.memory import Memory
+
+
+def _layer(linear: nn.Linear, std: float) -> nn.Linear:
+    # Orthogonal init with small policy-head gain: the standard PPO recipe (CleanRL, SB3).
+    nn.init.orthogonal_(linear.weight, std)
+    nn.init.zeros_(linear.bias)
+    return linear
+
+
+class ActorCritic(nn.Module):
+    """pi_theta(a_t | memory(h_t)) and V(memory(h_t)) over flat observations.
+
+    Args:
+        observation_size: size D_obs of a flat observation.
+        num_actions: number A of discrete actions.
+        memory: the memory module; its input_size must equal `encoder_size`.
+        encoder_size: width of the observation encoder and of the heads' hidden layer.
+    """
+
+    def __init__(
+        self, observation_size: int, num_actions: int, memory: Memory, encoder_size: int
+    ) -> None:
+        super().__init__()
+        self.encoder = nn.Sequential(
+            _layer(nn.Linear(observation_size, encoder_size), np.sqrt(2)), nn.ReLU()
+        )
+        self.memory = memory
+        # A hidden layer between memory and outputs (as in SB3's RecurrentPPO): with linear
+        # heads, LSTM-PPO barely learns to condition on small-scale inputs such as CartPole's.
+        self.actor = self._head(memory.output_size, encoder_size, num_actions, 0.01)
+        self.critic = self._head(memory.output_size, encoder_size, 1, 1.0)
+
+    @staticmethod
+    def _head(in_size: int, hidden: int, out_size: int, std: float) -> nn.Sequential:
+        return nn.Sequential(
+            _layer(nn.Linear(in_size, hidden), np.sqrt(2)),
+            nn.Tanh(),
+            _layer(nn.Linear(hidden, out_size), std),
+        )
+
+    def initial_state(self, batch_size: int) -> torch.Tensor:
+        """Zero memory state, (batch_size, memory.state_size)."""
+        return self.memory.initial_state(batch_size)
+
+    def forward(
+        self, obs: torch.Tensor, state: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Run whole sequences.
+
+        Args:
+            obs: (B, L, D_obs) observations.
+            state: (B, S) memory state before the first step.
+
+        Returns:
+            logits (B, L, A), values (B, L) and the final state (B, S).
+        """
+        out, state = self.memory(self.encoder(obs), state)
+        return self.actor(out), self.critic(out).squeeze(-1), state
+
+    def step(
+        self, obs: torch.Tensor, state: torch.Tensor, episode_start: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step for N environments, zeroing the state where an episode starts.
+
+        Args:
+            obs: (N, D_obs); state: (N, S); episode_start: (N,) bool.
+
+        Returns:
+            logits (N, A), values (N,), new state (N, S).
+        """
+        state = state * (~episode_start).unsqueeze(1).to(state.dtype)
+        logits, values, state = self(obs.unsqueeze(1), state)
+        return logits.squeeze(1), values.squeeze(1), state

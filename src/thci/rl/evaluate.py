@@ -1,0 +1,80 @@
+"""Evaluate a trained run: play N episodes with its latest checkpoint and report the results."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from thci.envs.factory import make_vector_env
+from thci.errors import ThciError
+from thci.experiments.run_dir import RunDirectory, atomic_write_json
+from thci.rl.rollout import Episode, RolloutCollector
+from thci.rl.trainer import build_agent
+
+
+def evaluate(
+    run_dir: Path, episodes: int, greedy: bool = True, seed: int = 10_000, num_envs: int = 16
+) -> dict[str, Any]:
+    """Play `episodes` episodes with the run's agent; write and return evaluation.json's content.
+
+    Each of the parallel environments plays a fixed share of the episodes, so short episodes
+    are not over-represented (the same scheme as SB3's ``evaluate_policy``).
+    """
+    if episodes <= 0:
+        raise ThciError(f"--episodes must be a positive integer, got {episodes}")
+    if not run_dir.is_dir():
+        raise ThciError(f"run directory {run_dir} not found")
+    run = RunDirectory(run_dir)
+    if not run.config_path.is_file():
+        raise ThciError(f"{run_dir} is not a thci run: config.json is missing")
+    config = run.read_config()
+    checkpoint = run.load_checkpoint()
+    torch.set_num_threads(config.torch_threads)
+    torch.manual_seed(seed)
+    num_envs = min(num_envs, episodes)
+    envs = make_vector_env(config.env, num_envs, config.vectorization)
+    try:
+        agent = build_agent(config, envs)
+        try:
+            agent.load_state_dict(checkpoint["agent"])
+        except (KeyError, RuntimeError) as exc:
+            raise ThciError(f"checkpoint does not match the run's config ({exc})") from None
+        collector = RolloutCollector(
+            envs,
+            agent,
+            num_steps=64,
+            gamma=config.gamma,
+            success_return=config.success_return,
+            greedy=greedy,
+        )
+        collector.reset(seed)
+        quota = np.full(num_envs, episodes // num_envs) + (
+            np.arange(num_envs) < episodes % num_envs
+        )
+        finished: list[Episode] = []
+        counts = np.zeros(num_envs, dtype=np.int64)
+        while (counts < quota).any():
+            _, new = collector.collect()
+            for episode in new:
+                if counts[episode.env] < quota[episode.env]:
+                    counts[episode.env] += 1
+                    finished.append(episode)
+    finally:
+        envs.close()
+    known = [e.success for e in finished if e.success is not None]
+    result = {
+        "env_id": config.env,
+        "method": config.method,
+        "algo": config.algo,
+        "episodes": len(finished),
+        "greedy": greedy,
+        "success_rate": float(np.mean(known)) if known else None,
+        "mean_return": float(np.mean([e.reward for e in finished])),
+        "mean_length": float(np.mean([e.length for e in finished])),
+        "checkpoint_update": checkpoint["update"],
+    }
+    atomic_write_json(run.path / "evaluation.json", result)
+    return result

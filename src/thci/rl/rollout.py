@@ -1,0 +1,220 @@
+"""Collect fixed-length rollouts from a SAME_STEP-autoreset vector env (the RL loop of Fig. 3).
+
+The collector is shared by every algorithm: it steps N environments T times with the agent,
+keeps the agent's memory state across rollouts, bootstraps truncated episodes with the value
+of their final observation, and reports each finished episode (return, length, success).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium.vector import VectorEnv
+
+from thci.rl.agent import ActorCritic
+
+
+@dataclass
+class Rollout:
+    """T steps of N environments, time-major.
+
+    Attributes:
+        obs: (T, N, D) observation the agent acted on.
+        actions: (T, N) long.
+        logprobs: (T, N) log pi(a_t | h_t) at collection time.
+        values: (T, N) V(h_t) at collection time.
+        rewards: (T, N) reward, plus gamma * V(final obs) where an episode was truncated.
+        dones: (T, N) bool, the episode ended with step t (terminated or truncated).
+        episode_starts: (T, N) bool, obs[t] is the first observation of an episode.
+        initial_state: (N, S) memory state before step 0 (used where episodes continue).
+        last_value: (N,) V of the observation after step T-1 (for bootstrapping).
+    """
+
+    obs: torch.Tensor
+    actions: torch.Tensor
+    logprobs: torch.Tensor
+    values: torch.Tensor
+    rewards: torch.Tensor
+    dones: torch.Tensor
+    episode_starts: torch.Tensor
+    initial_state: torch.Tensor
+    last_value: torch.Tensor
+
+
+@dataclass(frozen=True)
+class Episode:
+    """A finished episode of environment `env`; `step` is its last step's index in the rollout."""
+
+    reward: float
+    length: int
+    success: bool | None
+    step: int
+    env: int
+
+
+class RolloutCollector:
+    """Steps a vector env with an agent, one rollout of `num_steps` steps at a time.
+
+    Args:
+        envs: vector env with SAME_STEP autoreset and flat Box observations.
+        agent: the actor-critic.
+        num_steps: T, steps per environment per rollout.
+        gamma: discount, for the truncation bootstrap.
+        success_return: for envs without info["success"], the return that counts as success.
+        greedy: act with the most likely action instead of sampling (for evaluation).
+    """
+
+    def __init__(
+        self,
+        envs: VectorEnv,
+        agent: ActorCritic,
+        num_steps: int,
+        gamma: float,
+        success_return: float | None = None,
+        greedy: bool = False,
+    ) -> None:
+        self.envs, self.agent = envs, agent
+        self.num_envs, self.num_steps, self.gamma = envs.num_envs, num_steps, gamma
+        self.success_return, self.greedy = success_return, greedy
+        self.obs = torch.zeros(0)
+        self.episode_start = torch.ones(self.num_envs, dtype=torch.bool)
+        self.state = agent.initial_state(self.num_envs)
+        self.episode_reward = np.zeros(self.num_envs)
+        self.episode_length = np.zeros(self.num_envs, dtype=np.int64)
+
+    def reset(self, seed: int) -> None:
+        """Start fresh episodes in every environment."""
+        obs, _ = self.envs.reset(seed=seed)
+        self.obs = torch.as_tensor(obs, dtype=torch.float32)
+        self.episode_start[:] = True
+        self.state = self.agent.initial_state(self.num_envs)
+        self.episode_reward[:] = 0
+        self.episode_length[:] = 0
+
+    @torch.no_grad()
+    def collect(self) -> tuple[Rollout, list[Episode]]:
+        """Run T steps in each environment; return the rollout and the episodes that ended."""
+        T, N = self.num_steps, self.num_envs
+        obs = torch.zeros(T, N, *self.obs.shape[1:])
+        actions = torch.zeros(T, N, dtype=torch.long)
+        logprobs, values, rewards = (torch.zeros(T, N) for _ in range(3))
+        dones = torch.zeros(T, N, dtype=torch.bool)
+        episode_starts = torch.zeros(T, N, dtype=torch.bool)
+        initial_state = self.state.clone()
+        episodes: list[Episode] = []
+
+        for t in range(T):
+            logits, value, state = self.agent.step(self.obs, self.state, self.episode_start)
+            dist = torch.distributions.Categorical(logits=logits)
+            action = logits.argmax(dim=-1) if self.greedy else dist.sample()
+            next_obs, reward, terminated, truncated, infos = self.envs.step(action.numpy())
+
+            obs[t], actions[t], logprobs[t], values[t] = (
+                self.obs,
+                action,
+                dist.log_prob(action),
+                value,
+            )
+            episode_starts[t] = self.episode_start
+            done = np.logical_or(terminated, truncated)
+            dones[t] = torch.as_tensor(done)
+            step_reward = torch.as_tensor(reward, dtype=torch.float32)
+
+            # A truncated episode did not end in the MDP: credit the value of where it stopped.
+            cut = np.flatnonzero(truncated & ~terminated)
+            if len(cut):
+                final = torch.as_tensor(final_observations(infos, cut), dtype=torch.float32)
+                _, final_value, _ = self.agent.step(
+                    final, state[cut], torch.zeros(len(cut), dtype=torch.bool)
+                )
+                step_reward[cut] += self.gamma * final_value
+            rewards[t] = step_reward
+
+            self.episode_reward += reward
+            self.episode_length += 1
+            ended = np.flatnonzero(done)
+            if len(ended):
+                success = self._success(infos, ended)
+                for i, k in enumerate(ended):
+                    episodes.append(
+                        Episode(
+                            float(self.episode_reward[k]),
+                            int(self.episode_length[k]),
+                            None if success is None else bool(success[i]),
+                            t,
+                            int(k),
+                        )
+                    )
+                self.episode_reward[ended] = 0
+                self.episode_length[ended] = 0
+
+            self.obs = torch.as_tensor(next_obs, dtype=torch.float32)
+            self.episode_start = torch.as_tensor(done)
+            self.state = state
+
+        _, last_value, _ = self.agent.step(self.obs, self.state, self.episode_start)
+        rollout = Rollout(
+            obs,
+            actions,
+            logprobs,
+            values,
+            rewards,
+            dones,
+            episode_starts,
+            initial_state,
+            last_value,
+        )
+        return rollout, episodes
+
+    def _success(self, infos: dict[str, Any], ended: np.ndarray) -> np.ndarray | None:
+        """Success flags (len(ended),) of the episodes that just ended, or None if unknown."""
+        final_info = infos.get("final_info", {})
+        if "success" in final_info:
+            return np.asarray(final_info["success"])[ended].astype(bool)
+        if self.success_return is not None:
+            return self.episode_reward[ended] >= self.success_return
+        return None
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue collecting bit-identically (env state if capturable)."""
+        state: dict[str, Any] = {
+            "obs": self.obs.clone(),
+            "episode_start": self.episode_start.clone(),
+            "memory_state": self.state.clone(),
+            "episode_reward": torch.as_tensor(self.episode_reward),
+            "episode_length": torch.as_tensor(self.episode_length),
+        }
+        if hasattr(self.envs, "get_state"):
+            state["envs"] = {k: torch.as_tensor(v) for k, v in self.envs.get_state().items()}
+        return state
+
+    def load_state_dict(self, state: dict[str, Any], seed: int) -> bool:
+        """Restore a :meth:`state_dict`. Returns False when the envs had to be reset instead.
+
+        Environments that cannot capture their state restart their episodes, seeded by `seed`.
+        """
+        if "envs" in state and hasattr(self.envs, "set_state"):
+            self.envs.set_state({k: v.numpy() for k, v in state["envs"].items()})
+            self.obs = state["obs"].clone()
+            self.episode_start = state["episode_start"].clone()
+            self.state = state["memory_state"].clone()
+            self.episode_reward = state["episode_reward"].numpy().copy()
+            self.episode_length = state["episode_length"].numpy().copy()
+            return True
+        self.reset(seed)
+        return False
+
+
+def final_observations(infos: dict[str, Any], which: np.ndarray) -> np.ndarray:
+    """Final observations (len(which), D) of the episodes that ended in envs `which`.
+
+    Native vector envs give ``infos["final_obs"]`` as a dense array; gymnasium's SyncVectorEnv
+    gives an object array of per-env observations.
+    """
+    final = infos["final_obs"]
+    if final.dtype == object:
+        return np.stack([final[k] for k in which]).astype(np.float32)
+    return final[which]

@@ -1,0 +1,206 @@
+"""The training loop: collect a rollout, update the agent, log, checkpoint; repeat.
+
+Read :func:`train` top to bottom: it is the whole run. Everything that can be wrong with the
+user's input is checked before the run directory is created, and a run killed at any point
+resumes from its last checkpoint to the same result an uninterrupted run gives.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import torch
+from gymnasium.vector import VectorEnv
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
+
+import thci
+from thci.config import TrainConfig
+from thci.envs.factory import make_vector_env
+from thci.errors import ThciError
+from thci.experiments.run_dir import MetricsLog, RunDirectory
+from thci.memory import make_memory
+from thci.rl.agent import ActorCritic
+from thci.rl.ppo import PPO
+from thci.rl.rollout import RolloutCollector
+from thci.rl.tracking import SolveTracker
+
+# summary.json fields that depend on the machine's speed, not on the seed.
+TIMING_FIELDS = ("wall_clock_s", "steps_per_second")
+
+
+def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
+    """The agent for `config.method` on the spaces of `envs` (initialized from torch's RNG)."""
+    memory = make_memory(config.method, config.encoder_size, config.hidden_size)
+    observation_size = int(envs.single_observation_space.shape[0])
+    return ActorCritic(
+        observation_size, int(envs.single_action_space.n), memory, config.encoder_size
+    )
+
+
+def default_run_dir(config: TrainConfig) -> Path:
+    """runs/<env>__<method>__<algo>__s<seed>__<timestamp>."""
+    env = config.env.split(":")[-1].replace("/", "_")
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    return Path("runs") / f"{env}__{config.method}__{config.algo}__s{config.seed}__{stamp}"
+
+
+def train(config: TrainConfig) -> dict[str, Any]:
+    """Train as `config` says; returns the summary also written to summary.json."""
+    config.validate()
+    torch.set_num_threads(config.torch_threads)
+    envs = make_vector_env(config.env, config.num_envs, config.vectorization)
+    try:
+        config = dataclasses.replace(config, run_dir=config.run_dir or default_run_dir(config))
+        assert config.run_dir is not None
+        if config.resume:
+            run = RunDirectory.open_for_resume(config.run_dir, config)
+            checkpoint = run.load_checkpoint()  # fail on a corrupt one before touching files
+        else:
+            run = RunDirectory.create(config.run_dir, config)
+            checkpoint = None
+        return _train(config, envs, run, checkpoint)
+    finally:
+        envs.close()
+
+
+def _train(
+    config: TrainConfig,
+    envs: VectorEnv,
+    run: RunDirectory,
+    checkpoint: dict[str, Any] | None,
+) -> dict[str, Any]:
+    torch.manual_seed(config.seed)
+    agent = build_agent(config, envs)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=config.learning_rate, eps=1e-5)
+    collector = RolloutCollector(envs, agent, config.num_steps, config.gamma, config.success_return)
+    tracker = SolveTracker(config.solve_window, config.solve_threshold)
+    algorithm = PPO(config)
+    steps_per_update = config.num_envs * config.num_steps
+    num_updates = math.ceil(config.total_steps / steps_per_update)
+    num_parameters = sum(p.numel() for p in agent.parameters())
+
+    update, global_step, wall_clock_before = 0, 0, 0.0
+    if checkpoint is None:
+        collector.reset(config.seed)
+    else:
+        try:
+            agent.load_state_dict(checkpoint["agent"])
+            optimizer.load_state_dict(checkpoint["optimizer"])
+        except (KeyError, RuntimeError, ValueError) as exc:
+            raise ThciError(
+                f"checkpoint {run.checkpoint_path} does not match this model ({exc}); "
+                "resume with the original settings"
+            ) from None
+        update, global_step = checkpoint["update"], checkpoint["global_step"]
+        wall_clock_before = checkpoint["wall_clock_s"]
+        tracker.load_state_dict(checkpoint["tracker"])
+        torch.set_rng_state(checkpoint["torch_rng"])
+        if not collector.load_state_dict(checkpoint["collector"], seed=config.seed + update):
+            tqdm.write(f"note: {config.env} cannot save its state; episodes restart on resume")
+
+    metrics = MetricsLog(run.metrics_path, keep_until_update=update if checkpoint else None)
+    writer = SummaryWriter(str(run.tensorboard_path), purge_step=global_step or None)
+    if checkpoint is None:
+        tqdm.write(
+            f"thci: {config.method}-{config.algo} on {config.env}, "
+            f"{num_parameters} parameters, run dir {run.path}"
+        )
+
+    started = time.perf_counter()
+    bar = tqdm(
+        total=num_updates * steps_per_update,
+        initial=global_step,
+        unit="step",
+        disable=not config.progress,
+        dynamic_ncols=True,
+        desc=config.env,
+    )
+
+    def save_checkpoint() -> None:
+        run.save_checkpoint(
+            {
+                "config": config.to_dict(),
+                "update": update,
+                "global_step": global_step,
+                "wall_clock_s": wall_clock_before + time.perf_counter() - started,
+                "agent": agent.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "collector": collector.state_dict(),
+                "tracker": tracker.state_dict(),
+                "torch_rng": torch.get_rng_state(),
+            }
+        )
+
+    try:
+        while update < num_updates and not (config.stop_on_solve and tracker.solved):
+            if config.anneal_lr:
+                for group in optimizer.param_groups:
+                    group["lr"] = config.learning_rate * (1 - update / num_updates)
+            rollout, episodes = collector.collect()
+            tracker.add(episodes, global_step, config.num_envs)
+            global_step += steps_per_update
+            losses = algorithm.update(agent, optimizer, rollout)
+            update += 1
+
+            elapsed = wall_clock_before + time.perf_counter() - started
+            row = {
+                "update": update,
+                "global_step": global_step,
+                "episodes": tracker.episodes,
+                "success_rate": tracker.success_rate,
+                "episodic_return": tracker.mean_reward,
+                "episodic_length": tracker.mean_length,
+                "learning_rate": optimizer.param_groups[0]["lr"],
+                **losses,
+                "wall_clock_s": elapsed,
+            }
+            metrics.append(row)
+            for key in ("success_rate", "episodic_return", "episodic_length", "learning_rate"):
+                writer.add_scalar(f"charts/{key}", row[key], global_step)
+            writer.add_scalar("charts/SPS", global_step / max(elapsed, 1e-9), global_step)
+            for key, value in losses.items():
+                writer.add_scalar(f"losses/{key}", value, global_step)
+            bar.update(steps_per_update)
+            bar.set_postfix(success=f"{tracker.success_rate:.2f}", ret=f"{tracker.mean_reward:.2f}")
+            if update % config.checkpoint_every == 0:
+                save_checkpoint()
+    except KeyboardInterrupt:
+        raise ThciError(
+            f"interrupted; continue with: thci train --resume --run-dir {run.path} "
+            "(and the same settings)"
+        ) from None
+    finally:
+        bar.close()
+        writer.close()
+    save_checkpoint()
+
+    wall_clock = wall_clock_before + time.perf_counter() - started
+    summary = {
+        "env_id": config.env,
+        "method": config.method,
+        "algo": config.algo,
+        "seed": config.seed,
+        "total_env_steps": global_step,
+        "updates": update,
+        "episodes": tracker.episodes,
+        "solved": tracker.solved if tracker.success_known else None,
+        "steps_to_solve": tracker.steps_to_solve,
+        "success_rate_last100": _finite_or_none(tracker.success_rate),
+        "mean_return_last100": _finite_or_none(tracker.mean_reward),
+        "num_parameters": num_parameters,
+        "wall_clock_s": round(wall_clock, 3),
+        "steps_per_second": round(global_step / max(wall_clock, 1e-9), 1),
+        "thci_version": thci.__version__,
+    }
+    run.write_summary(summary)
+    return summary
+
+
+def _finite_or_none(value: float) -> float | None:
+    return value if math.isfinite(value) else None
