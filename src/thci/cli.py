@@ -25,8 +25,8 @@ class EvaluateArgs:
     """Run directory written by `thci train`."""
     episodes: int = 100
     """Episodes to play."""
-    greedy: bool = True
-    """Take the most likely action (else sample from the policy)."""
+    greedy: bool = False
+    """Take the most likely action instead of sampling from the policy (the trained one)."""
     seed: int = 10_000
     """Seed of the evaluation episodes."""
 

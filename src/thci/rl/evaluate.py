@@ -16,7 +16,7 @@ from thci.rl.trainer import build_agent
 
 
 def evaluate(
-    run_dir: Path, episodes: int, greedy: bool = True, seed: int = 10_000, num_envs: int = 16
+    run_dir: Path, episodes: int, greedy: bool = False, seed: int = 10_000, num_envs: int = 16
 ) -> dict[str, Any]:
     """Play `episodes` episodes with the run's agent; write and return evaluation.json's content.
 

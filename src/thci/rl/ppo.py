@@ -112,7 +112,7 @@ class PPO:
                     ("approx_kl", approx_kl),
                     ("clipfrac", clip_fraction),
                 ):
-                    stats.setdefault(name, []).append(float(value))
+                    stats.setdefault(name, []).append(value.item())
         result = {name: sum(v) / len(v) for name, v in stats.items()}
         variance = returns.var()
         result["explained_variance"] = float(

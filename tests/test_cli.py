@@ -1,0 +1,222 @@
+"""`thci train` / `thci evaluate` end to end: bad input, determinism, resume, learning."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from thci.cli import main
+from thci.rl.trainer import TIMING_FIELDS
+
+FAST = ["--no-progress", "--num-envs", "8", "--num-steps", "32"]
+
+
+def run_cli(args: list[str]) -> int:
+    try:
+        main(args)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    return 0
+
+
+def train(tmp_path: Path, name: str, *extra: str) -> dict:
+    run_dir = tmp_path / name
+    code = run_cli(["train", "--run-dir", str(run_dir), *FAST, *extra])
+    assert code == 0
+    return json.loads((run_dir / "summary.json").read_text())
+
+
+def without_timing(summary: dict) -> dict:
+    return {k: v for k, v in summary.items() if k not in TIMING_FIELDS}
+
+
+def assert_one_line_error(capsys, code: int, *fragments: str) -> None:
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("thci: error: ")
+    for fragment in fragments:
+        assert fragment in err
+
+
+@pytest.mark.parametrize(
+    ("args", "fragments"),
+    [
+        (["--env", "thci/PaperMaze-L5-v0"], ["unknown environment id", "thci/PaperMaze-L"]),
+        (["--env", "NoSuchThing-v9"], ["unknown environment id"]),
+        (["--env", "Pendulum-v1"], ["Discrete action space"]),
+        (["--learning-rate", "-1"], ["--learning-rate"]),
+        (["--gamma", "1.5"], ["--gamma"]),
+        (["--num-envs", "0"], ["--num-envs"]),
+        (["--num-minibatches", "32"], ["--num-minibatches"]),
+        (["--resume"], ["--run-dir"]),
+    ],
+)
+def test_bad_train_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, fragments):
+    run_dir = tmp_path / "run"
+    base = [] if "--resume" in args else ["--run-dir", str(run_dir)]
+    code = run_cli(["train", *base, "--total-steps", "256", *FAST, *args])
+    assert_one_line_error(capsys, code, *fragments)
+    assert not run_dir.exists()
+
+
+def test_existing_run_dir_needs_resume(tmp_path, capsys):
+    train(tmp_path, "run", "--total-steps", "256")
+    before = (tmp_path / "run" / "summary.json").read_text()
+    code = run_cli(["train", "--run-dir", str(tmp_path / "run"), *FAST, "--total-steps", "256"])
+    assert_one_line_error(capsys, code, "already exists", "--resume")
+    assert (tmp_path / "run" / "summary.json").read_text() == before
+
+
+def test_resume_with_different_config_is_refused(tmp_path, capsys):
+    train(tmp_path, "run", "--total-steps", "256")
+    code = run_cli(
+        [
+            "train",
+            "--run-dir",
+            str(tmp_path / "run"),
+            "--resume",
+            *FAST,
+            "--total-steps",
+            "512",
+            "--learning-rate",
+            "0.01",
+        ]
+    )
+    assert_one_line_error(capsys, code, "config differs", "learning_rate")
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "pickle"])
+def test_damaged_checkpoint_is_refused(tmp_path, capsys, damage):
+    train(tmp_path, "run", "--total-steps", "256")
+    checkpoint = tmp_path / "run" / "checkpoint.pt"
+    if damage == "truncate":
+        checkpoint.write_bytes(checkpoint.read_bytes()[: checkpoint.stat().st_size // 2])
+    elif damage == "garbage":
+        checkpoint.write_bytes(b"not a checkpoint at all")
+    else:  # an arbitrary pickled object must not be loaded (weights_only semantics)
+        torch.save({"format": "thci-checkpoint-v1", "payload": Path("x")}, checkpoint)
+    code = run_cli(
+        ["train", "--run-dir", str(tmp_path / "run"), "--resume", *FAST, "--total-steps", "512"]
+    )
+    assert_one_line_error(capsys, code, "checkpoint")
+    code = run_cli(["evaluate", str(tmp_path / "run"), "--episodes", "4"])
+    assert_one_line_error(capsys, code, "checkpoint")
+
+
+def test_evaluate_unknown_dir(tmp_path, capsys):
+    code = run_cli(["evaluate", str(tmp_path / "missing")])
+    assert_one_line_error(capsys, code, "not found")
+
+
+def test_same_seed_same_result_and_other_seed_differs(tmp_path):
+    a = train(tmp_path, "a", "--total-steps", "3000", "--seed", "7")
+    b = train(tmp_path, "b", "--total-steps", "3000", "--seed", "7")
+    train(tmp_path, "c", "--total-steps", "3000", "--seed", "8")
+    assert without_timing(a) == without_timing(b)
+    assert (tmp_path / "a" / "metrics.csv").read_text().count(
+        "\n"
+    ) == 1 + 12  # header + ceil(3000 / 256) updates
+    metrics = [
+        (tmp_path / name / "metrics.csv").read_text().splitlines() for name in ("a", "b", "c")
+    ]
+    strip = [[",".join(row.split(",")[:-1]) for row in rows] for rows in metrics]  # drop clock
+    assert strip[0] == strip[1]
+    assert strip[0] != strip[2]
+
+
+def test_resume_after_kill_gives_the_uninterrupted_result(tmp_path):
+    args = ["--total-steps", "16384", "--checkpoint-every", "3", "--seed", "3", *FAST]
+    reference = train(tmp_path, "reference", *args)
+
+    run_dir = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "thci.cli", "train", "--run-dir", str(run_dir), *args]
+    process = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    metrics = run_dir / "metrics.csv"
+    deadline = time.time() + 120
+    while time.time() < deadline and process.poll() is None:
+        if metrics.is_file() and metrics.read_text().count("\n") >= 6:  # past the checkpoint
+            break
+        time.sleep(0.02)
+    assert process.poll() is None, "the run finished before it could be killed"
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    assert not (run_dir / "summary.json").exists()
+    assert (run_dir / "checkpoint.pt").is_file()
+
+    code = run_cli(["train", "--run-dir", str(run_dir), "--resume", *args])
+    assert code == 0
+    resumed = json.loads((run_dir / "summary.json").read_text())
+    assert without_timing(resumed) == without_timing(reference)
+    strip = [
+        [",".join(r.split(",")[:-1]) for r in (d / "metrics.csv").read_text().splitlines()]
+        for d in (tmp_path / "reference", run_dir)
+    ]
+    assert strip[0] == strip[1]
+
+
+def test_lstm_ppo_learns_paper_maze_level1(tmp_path):
+    summary = train(
+        tmp_path,
+        "learn",
+        "--total-steps",
+        "80000",
+        "--stop-on-solve",
+        "--seed",
+        "1",
+        "--num-envs",
+        "16",
+        "--num-steps",
+        "64",
+    )
+    assert summary["solved"] is True
+    assert summary["success_rate_last100"] >= 0.9
+    code = run_cli(["evaluate", str(tmp_path / "learn"), "--episodes", "64"])
+    assert code == 0
+    evaluation = json.loads((tmp_path / "learn" / "evaluation.json").read_text())
+    assert evaluation["episodes"] == 64
+    assert evaluation["success_rate"] >= 0.8  # chance level is 0.5
+
+
+def test_memoryless_information_is_not_enough_for_a_trained_agent(tmp_path):
+    """The indicator is only visible at the start cell: a solved agent must use its memory."""
+    summary = train(
+        tmp_path,
+        "mem",
+        "--total-steps",
+        "80000",
+        "--stop-on-solve",
+        "--seed",
+        "1",
+        "--num-envs",
+        "16",
+        "--num-steps",
+        "64",
+    )
+    assert summary["solved"]
+    from thci.config import TrainConfig
+    from thci.envs.factory import make_vector_env
+    from thci.experiments.run_dir import RunDirectory
+    from thci.rl.trainer import build_agent
+
+    run = RunDirectory(tmp_path / "mem")
+    config = run.read_config()
+    envs = make_vector_env(config.env, 1)
+    agent = build_agent(TrainConfig(**{**config.to_dict(), "run_dir": None}), envs)
+    agent.load_state_dict(run.load_checkpoint()["agent"])
+    envs.close()
+    # Same corridor observation, different remembered indicator -> different action preference.
+    one_hot = torch.eye(15)
+    corridor = [2, 3, 7, 8, 9, 10]  # codes on the way from the start to the junction (L1)
+    prefs = []
+    for indicator in (0, 1):
+        obs = one_hot[[indicator, *corridor]].unsqueeze(0)
+        logits, _, _ = agent(obs, agent.initial_state(1))
+        prefs.append(torch.softmax(logits[0, -1], -1))
+    assert (prefs[0] - prefs[1]).abs().max() > 0.3
