@@ -62,8 +62,8 @@ class TrainConfig:
     """Anneal the learning rate linearly to 0 over total_steps."""
     gamma: float = 0.99
     gae_lambda: float = 0.95
-    update_epochs: int = 4
-    num_minibatches: int = 4
+    update_epochs: int = 8
+    num_minibatches: int = 8
     """Minibatches per epoch; each holds whole episode segments, never cut sequences."""
     clip_coef: float = 0.2
     ent_coef: float = 0.01

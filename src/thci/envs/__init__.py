@@ -5,10 +5,14 @@
 :class:`PaperMazeVectorEnv`, the default vectorization mode for these ids) work. No
 ``max_episode_steps`` is registered: the envs truncate themselves after 30 steps, and a
 ``TimeLimit`` wrapper on top would only duplicate that (pass ``max_steps=`` to change it).
+
+``thci/KeyDoorTV-v0`` is the paper's Fig. 1 key-to-door example (:class:`KeyDoorTVEnv`); it
+ends itself after 2 steps.
 """
 
 import gymnasium as gym
 
+from thci.envs.key_door_tv import KeyDoorTVEnv
 from thci.envs.paper_maze import (
     MazeLevel,
     PaperMazeEnv,
@@ -18,13 +22,16 @@ from thci.envs.paper_maze import (
 )
 
 __all__ = [
+    "KEY_DOOR_TV_ID",
     "PAPER_MAZE_IDS",
+    "KeyDoorTVEnv",
     "MazeLevel",
     "PaperMazeEnv",
     "PaperMazeVectorEnv",
     "load_maze_level",
 ]
 
+KEY_DOOR_TV_ID = "thci/KeyDoorTV-v0"
 PAPER_MAZE_IDS: tuple[str, ...] = tuple(f"thci/PaperMaze-L{k}-v0" for k in available_levels())
 
 
@@ -42,3 +49,12 @@ def _register_paper_mazes() -> None:
 
 
 _register_paper_mazes()
+
+
+def _register_key_door_tv() -> None:
+    # Same guard as above: re-importing must not re-register (gymnasium would warn).
+    if KEY_DOOR_TV_ID not in gym.registry:
+        gym.register(id=KEY_DOOR_TV_ID, entry_point="thci.envs.key_door_tv:KeyDoorTVEnv")
+
+
+_register_key_door_tv()

@@ -40,8 +40,11 @@ class ActorCritic(nn.Module):
         self.memory = memory
         # A hidden layer between memory and outputs (as in SB3's RecurrentPPO): with linear
         # heads, LSTM-PPO barely learns to condition on small-scale inputs such as CartPole's.
-        self.actor = self._head(memory.output_size, encoder_size, num_actions, 0.01)
-        self.critic = self._head(memory.output_size, encoder_size, 1, 1.0)
+        # The heads see the memory output and the current observation's features: a memory
+        # that skips observations (the causal memory) must never hide the present one.
+        head_input = memory.output_size + encoder_size
+        self.actor = self._head(head_input, encoder_size, num_actions, 0.01)
+        self.critic = self._head(head_input, encoder_size, 1, 1.0)
 
     @staticmethod
     def _head(in_size: int, hidden: int, out_size: int, std: float) -> nn.Sequential:
@@ -67,7 +70,9 @@ class ActorCritic(nn.Module):
         Returns:
             logits (B, L, A), values (B, L) and the final state (B, S).
         """
-        out, state = self.memory(self.encoder(obs), state)
+        features = self.encoder(obs)
+        out, state = self.memory(features, state)
+        out = torch.cat((out, features), dim=-1)
         return self.actor(out), self.critic(out).squeeze(-1), state
 
     def step(

@@ -1,0 +1,315 @@
+"""The effect predictor p_ζ and the ATE of an intervention (Eqs. 3, 8, 9).
+
+An *intervention* replaces, in every history h_{t-1}, the observations whose code lies in a set
+S ∪ O^w by zero vectors (Eq. 3); the current observation o_t is never masked. p_ζ is fitted on
+the masked histories and its held-out prediction error is compared with that of an
+un-intervened *control* predictor.
+
+Predictor. Each code has a learned embedding (zero-initialized, so a code the predictor never
+learned to use behaves like a masked one). The history h_{t-1} is summarized by the running
+max and running mean of the embeddings of o_1 … o_{t-1} (masked ones contribute the zero
+vector). This order-free summary matches the method's assumption that causal effects do not
+depend on the time step, and needs no loop over time. A two-layer MLP maps [history, embedding
+of o_t, a_t] to
+
+* ``dynamics`` (Eq. 9): a distribution over the next observation's code (codes beyond
+  `max_classes` are hashed into that many buckets, a coarsening that can only hide effects,
+  never invent them) and the reward; or
+* ``inverse``: a distribution over a_t, from [history, o_t, o_{t+1}].
+
+Estimator. The per-transition error is the L1 distance of Eq. 9 between the predicted
+distribution and the observed outcome, 2·(1 − p(observed)) / 2 = 1 − p(observed), plus
+|r̂ − r| / max|r| for the reward. For an intervention S with eliminated set O^w:
+
+    D_e(S) = Σ_t  1[h_{t-1} contains an observation in S] · (err_{S∪O^w}(t) − err_control(t))
+    ATE(S) = mean of D_e(S) over held-out episodes e whose history contains S somewhere
+
+i.e. the extra prediction error per episode (Eq. 4 sums over t) that the intervention causes
+where it applies (Prop. 2 integrates over histories that contain O^i). The environment's own
+noise costs the control and the intervened predictor alike, so it cancels.
+
+Reuse. The base predictor is fitted once per CI round; every intervention and the control are
+warm-started from it and fine-tuned on the *same* minibatches, K interventions at a time in one
+batched model (parameters carry a leading K dimension), so a round costs one base fit plus a
+short fine-tune per batch of interventions.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import nn
+
+from thci.causal.replay import PoolArrays
+
+Target = Literal["dynamics", "inverse"]
+
+
+@dataclass(frozen=True)
+class PredictorConfig:
+    """Hyperparameters of p_ζ and its fitting."""
+
+    target: Target = "dynamics"
+    embed_dim: int = 16
+    hidden_size: int = 64
+    base_steps: int = 300
+    """Adam steps of the base predictor fit (once per CI round)."""
+    finetune_steps: int = 150
+    """Adam steps of each warm-started intervention (and of the control)."""
+    batch_episodes: int = 128
+    learning_rate: float = 3e-3
+    holdout_fraction: float = 0.25
+    max_classes: int = 1024
+    seed: int = 0
+
+
+class CodeData:
+    """A pool's episodes as tensors with codes mapped to dense ids 0 … |Ô|-1.
+
+    Attributes:
+        observed: (|Ô|,) the observed codes; dense id i stands for observed[i].
+        ids: (E, L+1) long dense ids, padding 0 (masked out by `valid`).
+        actions: (E, L) long. rewards: (E, L) float, divided by max |r|.
+        valid: (E, L) bool, real transitions.
+        next_class: (E, L) long, class of o_{t+1} (dense id, hashed above max_classes).
+        train, test: index tensors of the training and held-out episodes.
+    """
+
+    def __init__(self, pool: PoolArrays, config: PredictorConfig, num_actions: int) -> None:
+        self.observed = np.unique(pool.codes[pool.codes >= 0])
+        dense = np.searchsorted(self.observed, np.maximum(pool.codes, 0))
+        self.ids = torch.as_tensor(dense, dtype=torch.long)
+        self.actions = torch.as_tensor(pool.actions, dtype=torch.long)
+        scale = float(np.abs(pool.rewards).max()) or 1.0
+        self.rewards = torch.as_tensor(pool.rewards / scale, dtype=torch.float32)
+        self.valid = torch.as_tensor(pool.valid)
+        self.num_codes = len(self.observed)
+        self.num_classes = min(self.num_codes, config.max_classes)
+        self.next_class = self.ids[:, 1:] % self.num_classes
+        self.num_actions = num_actions
+        generator = torch.Generator().manual_seed(config.seed)
+        order = torch.randperm(len(self.ids), generator=generator)
+        num_test = max(1, round(config.holdout_fraction * len(order)))
+        self.test, self.train = order[:num_test], order[num_test:]
+        if len(self.train) == 0:
+            self.train = self.test
+
+    def dense_ids(self, codes: np.ndarray) -> np.ndarray:
+        """Dense ids of `codes` that are in Ô (others are dropped)."""
+        codes = np.asarray(codes, dtype=np.int64)
+        inside = np.isin(codes, self.observed)
+        return np.searchsorted(self.observed, codes[inside])
+
+
+class BatchedPredictor(nn.Module):
+    """K independent predictors p_ζ evaluated in one pass (parameters lead with K).
+
+    Args:
+        num_models: K.
+        num_codes: |Ô| (embedding rows).
+        num_actions: A.
+        num_classes: classes of the next-observation head (dynamics target).
+        config: sizes and target.
+    """
+
+    def __init__(
+        self,
+        num_models: int,
+        num_codes: int,
+        num_actions: int,
+        num_classes: int,
+        config: PredictorConfig,
+    ) -> None:
+        super().__init__()
+        d, h = config.embed_dim, config.hidden_size
+        self.target, self.num_actions = config.target, num_actions
+        extra = num_actions if config.target == "dynamics" else d
+        out = num_classes + 1 if config.target == "dynamics" else num_actions
+        self.embed = nn.Parameter(torch.zeros(num_models, num_codes, d))
+        self.w1 = nn.Parameter(_uniform(num_models, 3 * d + extra, h))
+        self.b1 = nn.Parameter(torch.zeros(num_models, 1, h))
+        self.w2 = nn.Parameter(_uniform(num_models, h, out))
+        self.b2 = nn.Parameter(torch.zeros(num_models, 1, out))
+
+    def replicate(self, num_models: int) -> BatchedPredictor:
+        """A K'-model copy whose every model starts from this (single) model's weights."""
+        clone = BatchedPredictor.__new__(BatchedPredictor)
+        nn.Module.__init__(clone)
+        clone.target, clone.num_actions = self.target, self.num_actions
+        for name in ("embed", "w1", "b1", "w2", "b2"):
+            value = getattr(self, name).detach()[:1]
+            setattr(clone, name, nn.Parameter(value.repeat(num_models, *[1] * (value.dim() - 1))))
+        return clone
+
+    def forward(
+        self, ids: torch.Tensor, masked: torch.Tensor, actions: torch.Tensor
+    ) -> torch.Tensor:
+        """Predictions for every transition.
+
+        Args:
+            ids: (B, L+1) dense codes of o_1 … o_{L+1}.
+            masked: (K, B, L+1) bool, True where the history observation is replaced by 0.
+            actions: (B, L).
+
+        Returns:
+            (K, B, L, out) outputs for the transitions (o_t, a_t) -> (o_{t+1}, r_t), t = 1 … L.
+        """
+        num_models = self.embed.shape[0]
+        batch, steps = actions.shape
+        emb = self.embed[:, ids]  # (K, B, L+1, d), unmasked
+        hist = emb[:, :, :steps] * (~masked[:, :, :steps]).unsqueeze(-1)
+        count = torch.arange(1, steps + 1, dtype=emb.dtype).view(1, 1, steps, 1)
+        run_max = torch.cummax(hist, dim=2).values
+        run_mean = torch.cumsum(hist, dim=2) / count
+        # history h_{t-1} excludes o_t: shift by one step, empty history = zeros
+        pad = torch.zeros_like(hist[:, :, :1])
+        run_max = torch.cat((pad, run_max[:, :, :-1]), dim=2)
+        run_mean = torch.cat((pad, run_mean[:, :, :-1]), dim=2)
+        current = emb[:, :, :steps]
+        if self.target == "dynamics":
+            extra = nn.functional.one_hot(actions, self.num_actions).to(emb.dtype)
+            extra = extra.unsqueeze(0).expand(num_models, -1, -1, -1)
+        else:
+            extra = emb[:, :, 1 : steps + 1]
+        x = torch.cat((run_max, run_mean, current, extra), dim=-1).reshape(
+            num_models, batch * steps, -1
+        )
+        hidden = torch.relu(torch.baddbmm(self.b1, x, self.w1))
+        out = torch.baddbmm(self.b2, hidden, self.w2)
+        return out.reshape(num_models, batch, steps, -1)
+
+    def errors_and_loss(
+        self, data: CodeData, episodes: torch.Tensor, masked: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-transition errors (K, B, L) (Eq. 9's L1 distance) and the training loss (K,)."""
+        ids, actions = data.ids[episodes], data.actions[episodes]
+        valid = data.valid[episodes].unsqueeze(0)
+        out = self(ids, masked, actions)
+        if self.target == "dynamics":
+            logits, reward = out[..., :-1], out[..., -1]
+            target = data.next_class[episodes].unsqueeze(0).expand(out.shape[0], -1, -1)
+            true_reward = data.rewards[episodes].unsqueeze(0)
+            nll = nn.functional.cross_entropy(
+                logits.flatten(0, 2), target.flatten(), reduction="none"
+            )
+            nll = nll.view_as(reward)
+            prob = torch.exp(-nll)
+            errors = (1 - prob) + (reward - true_reward).abs()
+            per_step = nll + (reward - true_reward).pow(2)
+        else:
+            target = actions.unsqueeze(0).expand(out.shape[0], -1, -1)
+            nll = nn.functional.cross_entropy(out.flatten(0, 2), target.flatten(), reduction="none")
+            nll = nll.view(out.shape[:3])
+            errors = 1 - torch.exp(-nll)
+            per_step = nll
+        errors = errors * valid
+        loss = (per_step * valid).sum(dim=(1, 2)) / valid.sum().clamp(min=1)
+        return errors, loss
+
+
+def _uniform(num_models: int, fan_in: int, fan_out: int) -> torch.Tensor:
+    bound = 1 / math.sqrt(fan_in)
+    return torch.empty(num_models, fan_in, fan_out).uniform_(-bound, bound)
+
+
+@dataclass(frozen=True)
+class Intervention:
+    """A set of observations to mask in histories: codes `codes` (dense ids), or, for the
+    fine-grained CI of Prop. 1, only the occurrence of those codes at history step `step`."""
+
+    codes: np.ndarray
+    step: int | None = None
+
+
+class EffectEstimator:
+    """Fits p_ζ on a pool once, then estimates ATEs of batches of interventions.
+
+    Args:
+        pool: the replay pool's arrays.
+        num_actions: A.
+        config: predictor settings.
+    """
+
+    def __init__(self, pool: PoolArrays, num_actions: int, config: PredictorConfig) -> None:
+        self.config = config
+        self.data = CodeData(pool, config, num_actions)
+        torch.manual_seed(config.seed)
+        self.base = BatchedPredictor(
+            1, self.data.num_codes, num_actions, self.data.num_classes, config
+        )
+        no_mask = torch.zeros(1, 1, 1, dtype=torch.bool)
+        self._fit(
+            self.base,
+            lambda ep: no_mask.expand(1, len(ep), self.data.ids.shape[1]),
+            config.base_steps,
+        )
+        control = self.base.replicate(1)
+        self._fit(
+            control,
+            lambda ep: no_mask.expand(1, len(ep), self.data.ids.shape[1]),
+            config.finetune_steps,
+        )
+        with torch.no_grad():
+            test = self.data.test
+            self.control_errors, _ = control.errors_and_loss(
+                self.data, test, no_mask.expand(1, len(test), self.data.ids.shape[1])
+            )
+
+    def _fit(self, model: BatchedPredictor, masks, steps: int) -> None:
+        """Adam on minibatches of training episodes; the minibatch order depends only on the
+        seed, so every model fine-tuned for the same number of steps sees the same batches."""
+        optimizer = torch.optim.Adam(model.parameters(), lr=self.config.learning_rate)
+        generator = torch.Generator().manual_seed(self.config.seed + 1)
+        train = self.data.train
+        size = min(self.config.batch_episodes, len(train))
+        for _ in range(steps):
+            episodes = train[torch.randint(len(train), (size,), generator=generator)]
+            _, loss = model.errors_and_loss(self.data, episodes, masks(episodes))
+            optimizer.zero_grad()
+            loss.sum().backward()
+            optimizer.step()
+
+    def _mask_builder(self, interventions: list[Intervention], eliminated: np.ndarray):
+        """A function of a minibatch of episodes returning (masked, tested), both (K, B, L+1):
+        positions replaced by zero vectors, and positions holding the tested observations."""
+        num_codes, positions = self.data.num_codes, self.data.ids.shape[1]
+        member = torch.zeros(len(interventions), num_codes, dtype=torch.bool)
+        at_step = torch.ones(len(interventions), positions, dtype=torch.bool)
+        for k, intervention in enumerate(interventions):
+            member[k, torch.as_tensor(intervention.codes, dtype=torch.long)] = True
+            if intervention.step is not None:
+                at_step[k] = False
+                at_step[k, intervention.step] = True
+        in_eliminated = torch.zeros(num_codes, dtype=torch.bool)
+        in_eliminated[torch.as_tensor(eliminated, dtype=torch.long)] = True
+
+        def build(episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            ids = self.data.ids[episodes]
+            tested = member[:, ids] & at_step.unsqueeze(1)
+            return tested | in_eliminated[ids].unsqueeze(0), tested
+
+        return build
+
+    def ate(self, interventions: list[Intervention], eliminated: np.ndarray) -> np.ndarray:
+        """ATE of each intervention given the eliminated set O^w (dense ids), shape (K,)."""
+        if not interventions:
+            return np.zeros(0)
+        masks = self._mask_builder(interventions, eliminated)
+        model = self.base.replicate(len(interventions))
+        self._fit(model, lambda ep: masks(ep)[0], self.config.finetune_steps)
+        test = self.data.test
+        with torch.no_grad():
+            masked, tested = masks(test)
+            errors, _ = model.errors_and_loss(self.data, test, masked)
+        steps = errors.shape[2]
+        # transition t counts when a tested observation lies in h_{t-1} (positions < t)
+        seen = torch.cummax(tested[:, :, :steps].int(), dim=2).values.bool()
+        applies = torch.cat((torch.zeros_like(seen[:, :, :1]), seen[:, :, :-1]), dim=2)
+        applies &= self.data.valid[test].unsqueeze(0)
+        extra = ((errors - self.control_errors) * applies).sum(dim=2)  # (K, E_test)
+        episodes_hit = applies.any(dim=2).sum(dim=1)
+        return (extra.sum(dim=1) / episodes_hit.clamp(min=1)).numpy()
