@@ -3,7 +3,7 @@
 An *intervention* replaces, in every history h_{t-1}, the observations whose code lies in a set
 S ∪ O^w by zero vectors (Eq. 3); the current observation o_t is never masked. p_ζ is fitted on
 the masked histories and its held-out prediction error is compared with that of an
-un-intervened *control* predictor.
+control predictor (see the estimator below).
 
 Predictor. Each code has a learned embedding (zero-initialized, so a code the predictor never
 learned to use behaves like a masked one). The history h_{t-1} is summarized by the running
@@ -21,14 +21,16 @@ Estimator. The per-transition error is the L1 distance of Eq. 9 between the pred
 distribution and the observed outcome, 2·(1 − p(observed)) / 2 = 1 − p(observed), plus
 |r̂ − r| / max|r| for the reward. For an intervention S with eliminated set O^w:
 
-    D_e(S) = Σ_t  1[h_{t-1} contains an observation in S] · (err_{S∪O^w}(t) − err_control(t))
+    D_e(S) = Σ_t  1[h_{t-1} contains an observation in S] · (err_{S∪O^w}(t) − err_{O^w}(t))
     ATE(S) = mean of D_e(S) over held-out episodes e whose history contains S somewhere
 
 i.e. the extra prediction error per episode (Eq. 4 sums over t) that the intervention causes
-where it applies (Prop. 2 integrates over histories that contain O^i). The environment's own
-noise costs the control and the intervened predictor alike, so it cancels.
+where it applies (Prop. 2 integrates over histories that contain O^i). The control predictor
+masks O^w only, so the ATE is the effect of S *given* the eliminated set, which is what the
+sequential elimination of the search needs; the environment's own noise, and whatever masking
+O^w costs, hit the control and the intervened predictor alike and cancel.
 
-Reuse. The base predictor is fitted once per CI round; every intervention and the control are
+Reuse. The base predictor is fitted once per CI round; every intervention and its control are
 warm-started from it and fine-tuned on the *same* minibatches, K interventions at a time in one
 batched model (parameters carry a leading K dimension), so a round costs one base fit plus a
 short fine-tune per batch of interventions.
@@ -62,6 +64,9 @@ class PredictorConfig:
     """Adam steps of each warm-started intervention (and of the control)."""
     batch_episodes: int = 128
     learning_rate: float = 3e-3
+    embed_decay: float = 0.0
+    """Decoupled weight decay of the code embeddings: an observation the predictor does not
+    need decays to the zero vector, which is exactly what masking puts in its place."""
     holdout_fraction: float = 0.25
     max_classes: int = 1024
     seed: int = 0
@@ -87,6 +92,9 @@ class CodeData:
         scale = float(np.abs(pool.rewards).max()) or 1.0
         self.rewards = torch.as_tensor(pool.rewards / scale, dtype=torch.float32)
         self.valid = torch.as_tensor(pool.valid)
+        # Weight the reward's squared error like a unit-variance Gaussian log-likelihood, so a
+        # sparse reward is not drowned by the next-observation cross-entropy.
+        self.reward_weight = 1.0 / max(float(self.rewards[self.valid].var()), 1e-3)
         self.num_codes = len(self.observed)
         self.num_classes = min(self.num_codes, config.max_classes)
         self.next_class = self.ids[:, 1:] % self.num_classes
@@ -123,6 +131,7 @@ class BatchedPredictor(nn.Module):
         num_actions: int,
         num_classes: int,
         config: PredictorConfig,
+        max_steps: int = 1,
     ) -> None:
         super().__init__()
         d, h = config.embed_dim, config.hidden_size
@@ -130,6 +139,7 @@ class BatchedPredictor(nn.Module):
         extra = num_actions if config.target == "dynamics" else d
         out = num_classes + 1 if config.target == "dynamics" else num_actions
         self.embed = nn.Parameter(torch.zeros(num_models, num_codes, d))
+        self.step_embed = nn.Parameter(torch.zeros(num_models, max_steps, d))
         self.w1 = nn.Parameter(_uniform(num_models, 3 * d + extra, h))
         self.b1 = nn.Parameter(torch.zeros(num_models, 1, h))
         self.w2 = nn.Parameter(_uniform(num_models, h, out))
@@ -140,7 +150,7 @@ class BatchedPredictor(nn.Module):
         clone = BatchedPredictor.__new__(BatchedPredictor)
         nn.Module.__init__(clone)
         clone.target, clone.num_actions = self.target, self.num_actions
-        for name in ("embed", "w1", "b1", "w2", "b2"):
+        for name in ("embed", "step_embed", "w1", "b1", "w2", "b2"):
             value = getattr(self, name).detach()[:1]
             setattr(clone, name, nn.Parameter(value.repeat(num_models, *[1] * (value.dim() - 1))))
         return clone
@@ -161,21 +171,26 @@ class BatchedPredictor(nn.Module):
         num_models = self.embed.shape[0]
         batch, steps = actions.shape
         emb = self.embed[:, ids]  # (K, B, L+1, d), unmasked
-        hist = emb[:, :, :steps] * (~masked[:, :, :steps]).unsqueeze(-1)
-        count = torch.arange(1, steps + 1, dtype=emb.dtype).view(1, 1, steps, 1)
-        run_max = torch.cummax(hist, dim=2).values
-        run_mean = torch.cumsum(hist, dim=2) / count
-        # history h_{t-1} excludes o_t: shift by one step, empty history = zeros
-        pad = torch.zeros_like(hist[:, :, :1])
-        run_max = torch.cat((pad, run_max[:, :, :-1]), dim=2)
-        run_mean = torch.cat((pad, run_mean[:, :, :-1]), dim=2)
+        removed = masked[:, :, :steps].unsqueeze(-1)
+        hist = emb[:, :, :steps] * ~removed  # Eq. 3: intervened observations -> zero vectors
+        # Running max over the *kept* history only: a removed observation leaves no trace, not
+        # even its slot (a zero placeholder would reveal that a masked code was there).
+        run_max = torch.cummax(hist.masked_fill(removed, float("-inf")), dim=2).values
+        # history h_{t-1} excludes o_t: shift by one step; an empty history is the zero vector
+        run_max = torch.cat(
+            (torch.full_like(run_max[:, :, :1], float("-inf")), run_max[:, :, :-1]), 2
+        )
+        run_max = run_max.masked_fill(torch.isinf(run_max), 0.0)
         current = emb[:, :, :steps]
         if self.target == "dynamics":
             extra = nn.functional.one_hot(actions, self.num_actions).to(emb.dtype)
             extra = extra.unsqueeze(0).expand(num_models, -1, -1, -1)
         else:
             extra = emb[:, :, 1 : steps + 1]
-        x = torch.cat((run_max, run_mean, current, extra), dim=-1).reshape(
+        # The step embedding lets the predictor know *when* an outcome arrives (e.g. a reward at the
+        # horizon); which observations matter stays a question about the history.
+        when = self.step_embed[:, :steps].unsqueeze(1).expand(-1, batch, -1, -1)
+        x = torch.cat((run_max, current, extra, when), dim=-1).reshape(
             num_models, batch * steps, -1
         )
         hidden = torch.relu(torch.baddbmm(self.b1, x, self.w1))
@@ -199,7 +214,7 @@ class BatchedPredictor(nn.Module):
             nll = nll.view_as(reward)
             prob = torch.exp(-nll)
             errors = (1 - prob) + (reward - true_reward).abs()
-            per_step = nll + (reward - true_reward).pow(2)
+            per_step = nll + data.reward_weight * (reward - true_reward).pow(2)
         else:
             target = actions.unsqueeze(0).expand(out.shape[0], -1, -1)
             nll = nn.functional.cross_entropy(out.flatten(0, 2), target.flatten(), reduction="none")
@@ -239,7 +254,12 @@ class EffectEstimator:
         self.data = CodeData(pool, config, num_actions)
         torch.manual_seed(config.seed)
         self.base = BatchedPredictor(
-            1, self.data.num_codes, num_actions, self.data.num_classes, config
+            1,
+            self.data.num_codes,
+            num_actions,
+            self.data.num_classes,
+            config,
+            max_steps=self.data.actions.shape[1],
         )
         no_mask = torch.zeros(1, 1, 1, dtype=torch.bool)
         self._fit(
@@ -247,22 +267,20 @@ class EffectEstimator:
             lambda ep: no_mask.expand(1, len(ep), self.data.ids.shape[1]),
             config.base_steps,
         )
-        control = self.base.replicate(1)
-        self._fit(
-            control,
-            lambda ep: no_mask.expand(1, len(ep), self.data.ids.shape[1]),
-            config.finetune_steps,
-        )
-        with torch.no_grad():
-            test = self.data.test
-            self.control_errors, _ = control.errors_and_loss(
-                self.data, test, no_mask.expand(1, len(test), self.data.ids.shape[1])
-            )
 
     def _fit(self, model: BatchedPredictor, masks, steps: int) -> None:
         """Adam on minibatches of training episodes; the minibatch order depends only on the
         seed, so every model fine-tuned for the same number of steps sees the same batches."""
-        optimizer = torch.optim.Adam(model.parameters(), lr=self.config.learning_rate)
+        optimizer = torch.optim.AdamW(
+            [
+                {"params": [model.embed], "weight_decay": self.config.embed_decay},
+                {
+                    "params": [model.step_embed, model.w1, model.b1, model.w2, model.b2],
+                    "weight_decay": 0.0,
+                },
+            ],
+            lr=self.config.learning_rate,
+        )
         generator = torch.Generator().manual_seed(self.config.seed + 1)
         train = self.data.train
         size = min(self.config.batch_episodes, len(train))
@@ -298,18 +316,22 @@ class EffectEstimator:
         """ATE of each intervention given the eliminated set O^w (dense ids), shape (K,)."""
         if not interventions:
             return np.zeros(0)
-        masks = self._mask_builder(interventions, eliminated)
-        model = self.base.replicate(len(interventions))
+        # Arm 0 is the control: O^w masked, nothing else; it is fine-tuned on the same batches,
+        # so what masking O^w (or fine-tuning) costs cancels out of every ATE.
+        control = Intervention(np.zeros(0, dtype=np.int64))
+        masks = self._mask_builder([control, *interventions], eliminated)
+        model = self.base.replicate(len(interventions) + 1)
         self._fit(model, lambda ep: masks(ep)[0], self.config.finetune_steps)
         test = self.data.test
         with torch.no_grad():
             masked, tested = masks(test)
             errors, _ = model.errors_and_loss(self.data, test, masked)
+        control_errors, errors, tested = errors[:1], errors[1:], tested[1:]
         steps = errors.shape[2]
         # transition t counts when a tested observation lies in h_{t-1} (positions < t)
         seen = torch.cummax(tested[:, :, :steps].int(), dim=2).values.bool()
         applies = torch.cat((torch.zeros_like(seen[:, :, :1]), seen[:, :, :-1]), dim=2)
         applies &= self.data.valid[test].unsqueeze(0)
-        extra = ((errors - self.control_errors) * applies).sum(dim=2)  # (K, E_test)
+        extra = ((errors - control_errors) * applies).sum(dim=2)  # (K, E_test)
         episodes_hit = applies.any(dim=2).sum(dim=1)
         return (extra.sum(dim=1) / episodes_hit.clamp(min=1)).numpy()

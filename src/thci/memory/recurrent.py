@@ -1,7 +1,12 @@
-"""LSTM and GRU memories (the paper's gated-RNN baselines and the core of its causal memory).
+"""LSTM and GRU memories, and the causal memory of T-HCI (an LSTM that skips gated steps).
 
 Whole sequences go through one ``nn.LSTM`` / ``nn.GRU`` call; the trainer cuts rollouts at
 episode boundaries beforehand (see :mod:`thci.rl.sequences`), so no per-step Python loop runs.
+
+With a ``keep`` mask the memory's state is *not advanced* on removed observations (the causal
+memory ψ = φ_ϑ(h) of Eq. 10's section): that is the same as running the RNN on the kept steps
+only. Each row's kept steps are moved to the front (a stable sort), run as one packed sequence,
+and every step then reads the output of the last kept step at or before it.
 """
 
 from __future__ import annotations
@@ -10,6 +15,7 @@ from typing import Literal
 
 import torch
 from torch import nn
+from torch.nn.utils.rnn import pack_padded_sequence, pad_packed_sequence
 
 from thci.memory.base import Memory
 
@@ -29,11 +35,41 @@ class RecurrentMemory(Memory):
         self.output_size = hidden_size
         self.state_size = 2 * hidden_size if cell == "lstm" else hidden_size
 
-    def forward(self, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, x: torch.Tensor, state: torch.Tensor, keep: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """See :meth:`Memory.forward`; x (B, L, D), state (B, S) -> (B, L, H), (B, S)."""
+        if keep is None or bool(keep.all()):
+            return self._run(x, state, None)
+        _, steps, size = x.shape
+        order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)  # kept steps first
+        compact = x.gather(1, order.unsqueeze(-1).expand(-1, -1, size))
+        kept = keep.sum(dim=1)
+        out, final = self._run(compact, state, kept.clamp(min=1))
+        # Rows that kept nothing keep their state; step t reads the last kept output <= t.
+        final = torch.where((kept > 0).unsqueeze(1), final, state)
+        last_kept = torch.cumsum(keep.long(), dim=1) - 1  # (B, L), -1 before the first kept
+        read = out.gather(1, last_kept.clamp(min=0).unsqueeze(-1).expand(-1, -1, out.shape[-1]))
+        initial = state[:, : self.output_size].unsqueeze(1).expand(-1, steps, -1)
+        return torch.where((last_kept >= 0).unsqueeze(-1), read, initial), final
+
+    def _run(
+        self, x: torch.Tensor, state: torch.Tensor, lengths: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The RNN over x (B, L, D) from `state`; with `lengths`, each row stops at its length."""
         if self.cell == "lstm":
             h, c = state.unsqueeze(0).chunk(2, dim=-1)
-            out, (h, c) = self.rnn(x, (h.contiguous(), c.contiguous()))
-            return out, torch.cat((h, c), dim=-1).squeeze(0)
-        out, h = self.rnn(x, state.unsqueeze(0).contiguous())
-        return out, h.squeeze(0)
+            hidden: torch.Tensor | tuple[torch.Tensor, torch.Tensor] = (
+                h.contiguous(),
+                c.contiguous(),
+            )
+        else:
+            hidden = state.unsqueeze(0).contiguous()
+        if lengths is None:
+            out, hidden = self.rnn(x, hidden)
+        else:
+            packed = pack_padded_sequence(x, lengths.cpu(), batch_first=True, enforce_sorted=False)
+            packed_out, hidden = self.rnn(packed, hidden)
+            out, _ = pad_packed_sequence(packed_out, batch_first=True, total_length=x.shape[1])
+        final = torch.cat(hidden, dim=-1) if isinstance(hidden, tuple) else hidden
+        return out, final.squeeze(0)

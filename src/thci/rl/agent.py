@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from thci.causal.gate import Gate
 from thci.memory import Memory
 
 
@@ -28,12 +29,20 @@ class ActorCritic(nn.Module):
         num_actions: number A of discrete actions.
         memory: the memory module; its input_size must equal `encoder_size`.
         encoder_size: width of the observation encoder and of the heads' hidden layer.
+        gate: for the causal memory, the gate that decides which observations the memory keeps
+            (fitted by the CI loop, never by the RL loss).
     """
 
     def __init__(
-        self, observation_size: int, num_actions: int, memory: Memory, encoder_size: int
+        self,
+        observation_size: int,
+        num_actions: int,
+        memory: Memory,
+        encoder_size: int,
+        gate: Gate | None = None,
     ) -> None:
         super().__init__()
+        self.gate = gate
         self.encoder = nn.Sequential(
             _layer(nn.Linear(observation_size, encoder_size), np.sqrt(2)), nn.ReLU()
         )
@@ -54,6 +63,10 @@ class ActorCritic(nn.Module):
             _layer(nn.Linear(hidden, out_size), std),
         )
 
+    def policy_parameters(self) -> list[nn.Parameter]:
+        """Parameters the RL loss trains: everything but the gate."""
+        return [p for name, p in self.named_parameters() if not name.startswith("gate.")]
+
     def initial_state(self, batch_size: int) -> torch.Tensor:
         """Zero memory state, (batch_size, memory.state_size)."""
         return self.memory.initial_state(batch_size)
@@ -71,7 +84,8 @@ class ActorCritic(nn.Module):
             logits (B, L, A), values (B, L) and the final state (B, S).
         """
         features = self.encoder(obs)
-        out, state = self.memory(features, state)
+        keep = None if self.gate is None else self.gate.keep(obs)
+        out, state = self.memory(features, state, keep)
         out = torch.cat((out, features), dim=-1)
         return self.actor(out), self.critic(out).squeeze(-1), state
 

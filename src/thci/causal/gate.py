@@ -1,0 +1,84 @@
+"""Gate_ϑ: which observations the causal memory removes (Eq. 10).
+
+Gate_ϑ(o) ∈ [0, 1] approximates I(o ∈ O^w). It is a small network on the observation itself,
+not a lookup table of codes, so it also decides for observations never seen in the pool. It is
+fitted after each CI round on one representative observation per code of Ô with the L1 loss of
+Eq. 10; an observation is removed from memory when Gate_ϑ(o) > 0.5. Until the first round the
+gate is inactive and the memory keeps everything.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+
+@dataclass(frozen=True)
+class GateFit:
+    """How well the gate reproduces O^w on Ô after fitting."""
+
+    loss: float
+    accuracy: float
+    steps: int
+
+
+class Gate(nn.Module):
+    """Gate_ϑ(o) = sigmoid(MLP(o)), 1 = remove from memory.
+
+    Args:
+        observation_size: D of a flat observation.
+        hidden_size: width of the hidden layer.
+    """
+
+    def __init__(self, observation_size: int, hidden_size: int = 64) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Linear(observation_size, hidden_size), nn.ReLU(), nn.Linear(hidden_size, 1)
+        )
+        self.register_buffer("active", torch.tensor(False))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Gate_ϑ(o) for observations (..., D) -> (...)."""
+        return torch.sigmoid(self.net(obs)).squeeze(-1)
+
+    @torch.no_grad()
+    def keep(self, obs: torch.Tensor) -> torch.Tensor | None:
+        """(...) bool, False where the observation is removed; None while inactive."""
+        if not bool(self.active):
+            return None
+        return self(obs) <= 0.5
+
+    def fit(
+        self,
+        observations: torch.Tensor,
+        eliminated: torch.Tensor,
+        max_steps: int = 3000,
+        learning_rate: float = 1e-2,
+    ) -> GateFit:
+        """Minimize Eq. 10 on Ô and activate the gate.
+
+        Args:
+            observations: (|Ô|, D), one representative observation per observed code.
+            eliminated: (|Ô|,) bool, I(o ∈ O^w).
+        """
+        target = eliminated.float()
+        optimizer = torch.optim.Adam(self.net.parameters(), lr=learning_rate)
+        step = 0
+        with torch.enable_grad():
+            for step in range(1, max_steps + 1):
+                prob = self(observations)
+                loss = (prob - target).abs().mean()  # Eq. 10
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                # Stop once every decision is right with a margin.
+                if step % 50 == 0 and bool(((prob - target).abs() < 0.25).all()):
+                    break
+        self.active.fill_(True)
+        with torch.no_grad():
+            prob = self(observations)
+            accuracy = float(((prob > 0.5) == eliminated).float().mean())
+            loss = float((prob - target).abs().mean())
+        return GateFit(loss, accuracy, step)
