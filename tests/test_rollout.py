@@ -64,7 +64,7 @@ def test_truncated_steps_are_bootstrapped_and_terminated_ones_are_not():
 def test_success_return_defines_success_for_envs_without_the_info_key():
     envs = make_vector_env("ThciTest/Constant-v0", 2)
     agent = ActorCritic(3, 2, make_memory("gru", 8, 8), 8)
-    collector = RolloutCollector(envs, agent, num_steps=20, gamma=0.9, success_return=1.0)
+    collector = RolloutCollector(envs, agent, num_steps=300, gamma=0.9, success_return=1.0)
     collector.reset(seed=1)
     _, episodes = collector.collect()
     assert {e.success for e in episodes} == {True, False}
