@@ -15,12 +15,15 @@ from typing import Any, Literal
 
 from thci.errors import ThciError
 
-Method = Literal["lstm", "gru"]
+Method = Literal["lstm", "gru", "t-hci", "hci"]
+CAUSAL_METHODS = ("t-hci", "hci")
 Algo = Literal["ppo"]
 
 # Fields that may differ between a run and its resumption: where it lives, the resume flag
 # itself, how long to train (extending a finished run is legitimate) and machine settings.
-RESUMABLE_DIFFERENCES = frozenset({"run_dir", "resume", "total_steps", "torch_threads", "progress"})
+RESUMABLE_DIFFERENCES = frozenset(
+    {"run_dir", "resume", "total_steps", "torch_threads", "ci_threads", "progress"}
+)
 
 
 @dataclass
@@ -71,6 +74,31 @@ class TrainConfig:
     max_grad_norm: float = 0.5
     norm_adv: bool = True
 
+    # Counterfactual inference (methods t-hci and hci)
+    ci_every: int = 8192
+    """Env steps between CI rounds (the first runs once ci_min_episodes episodes are pooled)."""
+    ci_min_episodes: int = 400
+    """Episodes the replay pool must hold before the first CI round."""
+    ci_max_rounds: int = 8
+    """At most this many CI rounds (rounds also stop once two in a row agree)."""
+    ci_pool_episodes: int = 2000
+    """Capacity of the replay pool (whole episodes, oldest dropped first)."""
+    ci_z: int = 4
+    """Z: parts each candidate set is split into (T-HCI)."""
+    ci_xi: float = 0.1
+    """xi: an observation set whose ATE (extra prediction error per episode) is <= xi has no
+    causal effect."""
+    ci_target: Literal["dynamics", "inverse"] = "dynamics"
+    """What p_zeta predicts: next observation and reward, or the action (inverse dynamics)."""
+    ci_base_steps: int = 300
+    """Adam steps of the base effect predictor per round."""
+    ci_finetune_steps: int = 100
+    """Adam steps of each (batched) intervention's predictor."""
+    ci_threads: int = 2
+    """torch threads during CI rounds (the RL loop waits meanwhile, so all cores can help)."""
+    discretizer: Literal["auto", "exact", "simhash"] = "auto"
+    """How observations become codes: exact bytes, SimHash, or chosen from the data."""
+
     # Success and solving
     solve_threshold: float = 0.9
     """The run is solved when the success rate over the last solve_window episodes reaches this."""
@@ -101,6 +129,13 @@ class TrainConfig:
             "solve_window": self.solve_window,
             "checkpoint_every": self.checkpoint_every,
             "torch_threads": self.torch_threads,
+            "ci_every": self.ci_every,
+            "ci_min_episodes": self.ci_min_episodes,
+            "ci_max_rounds": self.ci_max_rounds,
+            "ci_pool_episodes": self.ci_pool_episodes,
+            "ci_base_steps": self.ci_base_steps,
+            "ci_finetune_steps": self.ci_finetune_steps,
+            "ci_threads": self.ci_threads,
         }
         for name, value in positive_ints.items():
             if value <= 0:
@@ -114,6 +149,7 @@ class TrainConfig:
             "vf_coef": self.vf_coef,
             "max_grad_norm": self.max_grad_norm,
             "solve_threshold": self.solve_threshold,
+            "ci_xi": self.ci_xi,
         }
         for name, value in floats.items():
             if not math.isfinite(value):
@@ -127,6 +163,10 @@ class TrainConfig:
         for name in ("clip_coef", "ent_coef", "vf_coef", "max_grad_norm"):
             if getattr(self, name) < 0:
                 raise ThciError(f"--{_flag(name)} must be >= 0, got {getattr(self, name)}")
+        if self.ci_z < 2:
+            raise ThciError(f"--ci-z must be at least 2, got {self.ci_z}")
+        if self.ci_xi < 0:
+            raise ThciError(f"--ci-xi must be >= 0, got {self.ci_xi}")
         if self.num_minibatches > self.num_envs:
             raise ThciError(
                 f"--num-minibatches ({self.num_minibatches}) cannot exceed --num-envs "

@@ -60,11 +60,14 @@ class PredictorConfig:
     hidden_size: int = 64
     base_steps: int = 300
     """Adam steps of the base predictor fit (once per CI round)."""
-    finetune_steps: int = 150
+    finetune_steps: int = 100
     """Adam steps of each warm-started intervention (and of the control)."""
     batch_episodes: int = 128
     learning_rate: float = 3e-3
     embed_decay: float = 0.0
+    code_dropout: float = 1.0
+    """Largest rate at which the base fit removes codes from an episode's history (see
+    :meth:`EffectEstimator._random_code_dropout`)."""
     """Decoupled weight decay of the code embeddings: an observation the predictor does not
     need decays to the zero vector, which is exactly what masking puts in its place."""
     holdout_fraction: float = 0.25
@@ -98,6 +101,7 @@ class CodeData:
         self.num_codes = len(self.observed)
         self.num_classes = min(self.num_codes, config.max_classes)
         self.next_class = self.ids[:, 1:] % self.num_classes
+
         self.num_actions = num_actions
         generator = torch.Generator().manual_seed(config.seed)
         order = torch.randperm(len(self.ids), generator=generator)
@@ -156,17 +160,18 @@ class BatchedPredictor(nn.Module):
         return clone
 
     def forward(
-        self, ids: torch.Tensor, masked: torch.Tensor, actions: torch.Tensor
+        self, ids: torch.Tensor, masked: torch.Tensor, actions: torch.Tensor, valid: torch.Tensor
     ) -> torch.Tensor:
-        """Predictions for every transition.
+        """Predictions for the real transitions.
 
         Args:
             ids: (B, L+1) dense codes of o_1 … o_{L+1}.
             masked: (K, B, L+1) bool, True where the history observation is replaced by 0.
             actions: (B, L).
+            valid: (B, L) bool, the real (unpadded) transitions; n of them.
 
         Returns:
-            (K, B, L, out) outputs for the transitions (o_t, a_t) -> (o_{t+1}, r_t), t = 1 … L.
+            (K, n, out) outputs for the transitions (o_t, a_t) -> (o_{t+1}, r_t) where valid.
         """
         num_models = self.embed.shape[0]
         batch, steps = actions.shape
@@ -175,12 +180,10 @@ class BatchedPredictor(nn.Module):
         hist = emb[:, :, :steps] * ~removed  # Eq. 3: intervened observations -> zero vectors
         # Running max over the *kept* history only: a removed observation leaves no trace, not
         # even its slot (a zero placeholder would reveal that a masked code was there).
-        run_max = torch.cummax(hist.masked_fill(removed, float("-inf")), dim=2).values
-        # history h_{t-1} excludes o_t: shift by one step; an empty history is the zero vector
-        run_max = torch.cat(
-            (torch.full_like(run_max[:, :, :1], float("-inf")), run_max[:, :, :-1]), 2
-        )
-        run_max = run_max.masked_fill(torch.isinf(run_max), 0.0)
+        seen = torch.cummax(hist.masked_fill(removed, float("-inf")), dim=2).values
+        # h_{t-1} excludes o_t: shift by one step; an empty history is the zero vector
+        seen = torch.cat((torch.full_like(seen[:, :, :1], float("-inf")), seen[:, :, :-1]), 2)
+        seen = seen.masked_fill(torch.isinf(seen), 0.0)
         current = emb[:, :, :steps]
         if self.target == "dynamics":
             extra = nn.functional.one_hot(actions, self.num_actions).to(emb.dtype)
@@ -190,40 +193,40 @@ class BatchedPredictor(nn.Module):
         # The step embedding lets the predictor know *when* an outcome arrives (e.g. a reward at the
         # horizon); which observations matter stays a question about the history.
         when = self.step_embed[:, :steps].unsqueeze(1).expand(-1, batch, -1, -1)
-        x = torch.cat((run_max, current, extra, when), dim=-1).reshape(
-            num_models, batch * steps, -1
-        )
+        x = torch.cat((seen, current, extra, when), dim=-1)[:, valid]  # padding skipped
         hidden = torch.relu(torch.baddbmm(self.b1, x, self.w1))
-        out = torch.baddbmm(self.b2, hidden, self.w2)
-        return out.reshape(num_models, batch, steps, -1)
+        return torch.baddbmm(self.b2, hidden, self.w2)
 
     def errors_and_loss(
         self, data: CodeData, episodes: torch.Tensor, masked: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-transition errors (K, B, L) (Eq. 9's L1 distance) and the training loss (K,)."""
-        ids, actions = data.ids[episodes], data.actions[episodes]
-        valid = data.valid[episodes].unsqueeze(0)
-        out = self(ids, masked, actions)
+        """Per-transition errors (K, B, L') (Eq. 9's L1 distance; 0 on padding) and the training
+        loss (K,). L' is the longest episode among `episodes` (the batch is cropped to it)."""
+        valid = data.valid[episodes]
+        steps = int(valid.sum(dim=1).max())
+        valid = valid[:, :steps]
+        ids, actions = data.ids[episodes, : steps + 1], data.actions[episodes, :steps]
+        out = self(ids, masked[:, :, : steps + 1], actions, valid)  # (K, n, out)
+        num_models = out.shape[0]
         if self.target == "dynamics":
             logits, reward = out[..., :-1], out[..., -1]
-            target = data.next_class[episodes].unsqueeze(0).expand(out.shape[0], -1, -1)
-            true_reward = data.rewards[episodes].unsqueeze(0)
+            target = data.next_class[episodes, :steps][valid].expand(num_models, -1)
+            true_reward = data.rewards[episodes, :steps][valid].unsqueeze(0)
             nll = nn.functional.cross_entropy(
-                logits.flatten(0, 2), target.flatten(), reduction="none"
-            )
-            nll = nll.view_as(reward)
-            prob = torch.exp(-nll)
-            errors = (1 - prob) + (reward - true_reward).abs()
+                logits.flatten(0, 1), target.flatten(), reduction="none"
+            ).view_as(reward)
+            flat_errors = (1 - torch.exp(-nll)) + (reward - true_reward).abs()
             per_step = nll + data.reward_weight * (reward - true_reward).pow(2)
         else:
-            target = actions.unsqueeze(0).expand(out.shape[0], -1, -1)
-            nll = nn.functional.cross_entropy(out.flatten(0, 2), target.flatten(), reduction="none")
-            nll = nll.view(out.shape[:3])
-            errors = 1 - torch.exp(-nll)
+            target = actions[valid].expand(num_models, -1)
+            nll = nn.functional.cross_entropy(
+                out.flatten(0, 1), target.flatten(), reduction="none"
+            ).view(num_models, -1)
+            flat_errors = 1 - torch.exp(-nll)
             per_step = nll
-        errors = errors * valid
-        loss = (per_step * valid).sum(dim=(1, 2)) / valid.sum().clamp(min=1)
-        return errors, loss
+        errors = flat_errors.new_zeros(num_models, *valid.shape)
+        errors[:, valid] = flat_errors
+        return errors, per_step.mean(dim=1)
 
 
 def _uniform(num_models: int, fan_in: int, fan_out: int) -> torch.Tensor:
@@ -253,6 +256,7 @@ class EffectEstimator:
         self.config = config
         self.data = CodeData(pool, config, num_actions)
         torch.manual_seed(config.seed)
+        self._dropout_generator = torch.Generator().manual_seed(config.seed + 2)
         self.base = BatchedPredictor(
             1,
             self.data.num_codes,
@@ -261,12 +265,23 @@ class EffectEstimator:
             config,
             max_steps=self.data.actions.shape[1],
         )
-        no_mask = torch.zeros(1, 1, 1, dtype=torch.bool)
-        self._fit(
-            self.base,
-            lambda ep: no_mask.expand(1, len(ep), self.data.ids.shape[1]),
-            config.base_steps,
-        )
+        self._fit(self.base, self._random_code_dropout, config.base_steps)
+
+    def _random_code_dropout(self, episodes: torch.Tensor) -> torch.Tensor:
+        """(1, B, L+1) masks that remove whole codes from each episode's history at random
+        (random interventions), at a rate drawn per episode uniformly from [0, 1].
+
+        Training the base predictor under random interventions of every size keeps it from
+        leaning on any one frequent observation and makes heavily masked histories familiar,
+        so every warm-started intervention adapts in a few steps instead of paying a spurious
+        're-learning' cost that would look like a causal effect.
+        """
+        ids = self.data.ids[episodes]
+        generator = self._dropout_generator
+        salt = int(torch.randint(1 << 30, (1,), generator=generator))
+        rate = torch.rand(len(episodes), 1, generator=generator) * self.config.code_dropout
+        mixed = (ids * 2654435761 + episodes.unsqueeze(1) * 40503 + salt) % 1_000_003
+        return (mixed < rate * 1_000_003).unsqueeze(0)
 
     def _fit(self, model: BatchedPredictor, masks, steps: int) -> None:
         """Adam on minibatches of training episodes; the minibatch order depends only on the
@@ -331,7 +346,7 @@ class EffectEstimator:
         # transition t counts when a tested observation lies in h_{t-1} (positions < t)
         seen = torch.cummax(tested[:, :, :steps].int(), dim=2).values.bool()
         applies = torch.cat((torch.zeros_like(seen[:, :, :1]), seen[:, :, :-1]), dim=2)
-        applies &= self.data.valid[test].unsqueeze(0)
+        applies &= self.data.valid[test, :steps].unsqueeze(0)
         extra = ((errors - control_errors) * applies).sum(dim=2)  # (K, E_test)
         episodes_hit = applies.any(dim=2).sum(dim=1)
         return (extra.sum(dim=1) / episodes_hit.clamp(min=1)).numpy()

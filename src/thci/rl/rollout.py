@@ -31,6 +31,11 @@ class Rollout:
         episode_starts: (T, N) bool, obs[t] is the first observation of an episode.
         initial_state: (N, S) memory state before step 0 (used where episodes continue).
         last_value: (N,) V of the observation after step T-1 (for bootstrapping).
+        env_rewards: (T, N) the environment's reward (without the truncation bootstrap).
+        final_obs: (T, N, D) last observation of the episodes that ended with step t (zeros
+            elsewhere).
+        causal: (T, N) bool info["causal"] of obs, or None when the env gives no labels.
+        final_causal: (T, N) bool info["causal"] of final_obs, or None.
     """
 
     obs: torch.Tensor
@@ -42,6 +47,10 @@ class Rollout:
     episode_starts: torch.Tensor
     initial_state: torch.Tensor
     last_value: torch.Tensor
+    env_rewards: torch.Tensor
+    final_obs: torch.Tensor
+    causal: torch.Tensor | None
+    final_causal: torch.Tensor | None
 
 
 @dataclass(frozen=True)
@@ -80,6 +89,7 @@ class RolloutCollector:
         self.num_envs, self.num_steps, self.gamma = envs.num_envs, num_steps, gamma
         self.success_return, self.greedy = success_return, greedy
         self.obs = torch.zeros(0)
+        self.causal: torch.Tensor | None = None
         self.episode_start = torch.ones(self.num_envs, dtype=torch.bool)
         self.state = agent.initial_state(self.num_envs)
         self.episode_reward = np.zeros(self.num_envs)
@@ -87,8 +97,9 @@ class RolloutCollector:
 
     def reset(self, seed: int) -> None:
         """Start fresh episodes in every environment."""
-        obs, _ = self.envs.reset(seed=seed)
+        obs, infos = self.envs.reset(seed=seed)
         self.obs = torch.as_tensor(obs, dtype=torch.float32)
+        self.causal = _labels(infos)
         self.episode_start[:] = True
         self.state = self.agent.initial_state(self.num_envs)
         self.episode_reward[:] = 0
@@ -103,6 +114,11 @@ class RolloutCollector:
         logprobs, values, rewards = (torch.zeros(T, N) for _ in range(3))
         dones = torch.zeros(T, N, dtype=torch.bool)
         episode_starts = torch.zeros(T, N, dtype=torch.bool)
+        env_rewards = torch.zeros(T, N)
+        final_obs = torch.zeros(T, N, *self.obs.shape[1:])
+        labelled = self.causal is not None
+        causal = torch.zeros(T, N, dtype=torch.bool) if labelled else None
+        final_causal = torch.zeros(T, N, dtype=torch.bool) if labelled else None
         initial_state = self.state.clone()
         episodes: list[Episode] = []
 
@@ -121,7 +137,18 @@ class RolloutCollector:
             episode_starts[t] = self.episode_start
             done = np.logical_or(terminated, truncated)
             dones[t] = torch.as_tensor(done)
-            step_reward = torch.as_tensor(reward, dtype=torch.float32)
+            step_reward = torch.tensor(reward, dtype=torch.float32)
+            env_rewards[t] = step_reward
+            ended = np.flatnonzero(done)
+            if len(ended):
+                final_obs[t, ended] = torch.as_tensor(
+                    final_observations(infos, ended), dtype=torch.float32
+                )
+            if causal is not None and final_causal is not None:
+                causal[t] = self.causal
+                final_labels = _labels(infos.get("final_info", {}))
+                if final_labels is not None:
+                    final_causal[t] = final_labels
 
             # A truncated episode did not end in the MDP: credit the value of where it stopped.
             cut = np.flatnonzero(truncated & ~terminated)
@@ -135,7 +162,6 @@ class RolloutCollector:
 
             self.episode_reward += reward
             self.episode_length += 1
-            ended = np.flatnonzero(done)
             if len(ended):
                 success = self._success(infos, ended)
                 for i, k in enumerate(ended):
@@ -152,6 +178,7 @@ class RolloutCollector:
                 self.episode_length[ended] = 0
 
             self.obs = torch.as_tensor(next_obs, dtype=torch.float32)
+            self.causal = _labels(infos) if labelled else None
             self.episode_start = torch.as_tensor(done)
             self.state = state
 
@@ -166,6 +193,10 @@ class RolloutCollector:
             episode_starts,
             initial_state,
             last_value,
+            env_rewards,
+            final_obs,
+            causal,
+            final_causal,
         )
         return rollout, episodes
 
@@ -182,6 +213,7 @@ class RolloutCollector:
         """Everything needed to continue collecting bit-identically (env state if capturable)."""
         state: dict[str, Any] = {
             "obs": self.obs.clone(),
+            "causal": self.causal,
             "episode_start": self.episode_start.clone(),
             "memory_state": self.state.clone(),
             "episode_reward": torch.as_tensor(self.episode_reward),
@@ -199,6 +231,7 @@ class RolloutCollector:
         if "envs" in state and hasattr(self.envs, "set_state"):
             self.envs.set_state({k: v.numpy() for k, v in state["envs"].items()})
             self.obs = state["obs"].clone()
+            self.causal = state["causal"]
             self.episode_start = state["episode_start"].clone()
             self.state = state["memory_state"].clone()
             self.episode_reward = state["episode_reward"].numpy().copy()
@@ -206,6 +239,13 @@ class RolloutCollector:
             return True
         self.reset(seed)
         return False
+
+
+def _labels(infos: dict[str, Any]) -> torch.Tensor | None:
+    """info["causal"] as an (N,) bool tensor, or None when the env does not report it."""
+    if "causal" not in infos:
+        return None
+    return torch.as_tensor(np.asarray(infos["causal"], dtype=bool))
 
 
 def final_observations(infos: dict[str, Any], which: np.ndarray) -> np.ndarray:

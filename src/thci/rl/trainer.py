@@ -20,10 +20,18 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 import thci
-from thci.config import TrainConfig
+from thci.causal.gate import Gate
+from thci.causal.loop import CausalInferenceLoop
+from thci.causal.taie import measure_taie
+from thci.config import CAUSAL_METHODS, TrainConfig
 from thci.envs.factory import make_vector_env
 from thci.errors import ThciError
-from thci.experiments.run_dir import MetricsLog, RunDirectory
+from thci.experiments.run_dir import (
+    MetricsLog,
+    RunDirectory,
+    atomic_write_bytes,
+    atomic_write_json,
+)
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
 from thci.rl.ppo import PPO
@@ -35,11 +43,21 @@ TIMING_FIELDS = ("wall_clock_s", "steps_per_second")
 
 
 def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
-    """The agent for `config.method` on the spaces of `envs` (initialized from torch's RNG)."""
-    memory = make_memory(config.method, config.encoder_size, config.hidden_size)
+    """The agent for `config.method` on the spaces of `envs` (initialized from torch's RNG).
+
+    T-HCI and HCI use the causal memory: an LSTM behind a gate fitted by the CI loop.
+    """
+    causal = config.method in CAUSAL_METHODS
+    memory = make_memory(
+        "lstm" if causal else config.method, config.encoder_size, config.hidden_size
+    )
     observation_size = int(envs.single_observation_space.shape[0])
     return ActorCritic(
-        observation_size, int(envs.single_action_space.n), memory, config.encoder_size
+        observation_size,
+        int(envs.single_action_space.n),
+        memory,
+        config.encoder_size,
+        gate=Gate(observation_size) if causal else None,
     )
 
 
@@ -77,10 +95,19 @@ def _train(
 ) -> dict[str, Any]:
     torch.manual_seed(config.seed)
     agent = build_agent(config, envs)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=config.learning_rate, eps=1e-5)
+    optimizer = torch.optim.Adam(agent.policy_parameters(), lr=config.learning_rate, eps=1e-5)
     collector = RolloutCollector(envs, agent, config.num_steps, config.gamma, config.success_return)
     tracker = SolveTracker(config.solve_window, config.solve_threshold)
     algorithm = PPO(config)
+    ci = None
+    if agent.gate is not None:
+        ci = CausalInferenceLoop(
+            config,
+            envs.single_observation_space,
+            int(envs.single_action_space.n),
+            config.num_envs,
+            agent.gate,
+        )
     steps_per_update = config.num_envs * config.num_steps
     num_updates = math.ceil(config.total_steps / steps_per_update)
     num_parameters = sum(p.numel() for p in agent.parameters())
@@ -100,6 +127,8 @@ def _train(
         update, global_step = checkpoint["update"], checkpoint["global_step"]
         wall_clock_before = checkpoint["wall_clock_s"]
         tracker.load_state_dict(checkpoint["tracker"])
+        if ci is not None:
+            ci.load_state_dict(checkpoint["ci"])
         torch.set_rng_state(checkpoint["torch_rng"])
         if not collector.load_state_dict(checkpoint["collector"], seed=config.seed + update):
             tqdm.write(f"note: {config.env} cannot save its state; episodes restart on resume")
@@ -133,6 +162,7 @@ def _train(
                 "optimizer": optimizer.state_dict(),
                 "collector": collector.state_dict(),
                 "tracker": tracker.state_dict(),
+                "ci": None if ci is None else ci.state_dict(),
                 "torch_rng": torch.get_rng_state(),
             }
         )
@@ -147,6 +177,18 @@ def _train(
             global_step += steps_per_update
             losses = algorithm.update(agent, optimizer, rollout)
             update += 1
+            if ci is not None:  # the CI loop runs on the pool between RL updates (Fig. 3)
+                ci.observe(rollout)
+                if ci.due(global_step):
+                    record = ci.run_round(global_step)
+                    write_ci_rounds(run, ci)
+                    for key in ("interventions", "observed", "causal", "seconds"):
+                        writer.add_scalar(f"ci/{key}", getattr(record, key), global_step)
+                    tqdm.write(
+                        f"CI round {record.round} at {global_step} steps: |Ô|={record.observed}, "
+                        f"{record.interventions} interventions, keeps {ci.describe_causal()}, "
+                        f"{record.seconds:.1f}s"
+                    )
 
             elapsed = wall_clock_before + time.perf_counter() - started
             row = {
@@ -194,12 +236,30 @@ def _train(
         "success_rate_last100": _finite_or_none(tracker.success_rate),
         "mean_return_last100": _finite_or_none(tracker.mean_reward),
         "num_parameters": num_parameters,
+        **(ci.summary() if ci is not None else {}),
+        "taie": None if ci is None else _taie(agent, config),
         "wall_clock_s": round(wall_clock, 3),
         "steps_per_second": round(global_step / max(wall_clock, 1e-9), 1),
         "thci_version": thci.__version__,
     }
     run.write_summary(summary)
     return summary
+
+
+def _taie(agent: ActorCritic, config: TrainConfig) -> float | None:
+    taie = measure_taie(
+        agent, config.env, seed=config.seed + 20_000, vectorization=config.vectorization
+    )
+    return None if taie is None else round(taie, 4)
+
+
+def write_ci_rounds(run: RunDirectory, ci: CausalInferenceLoop) -> None:
+    """ci_rounds.csv (one row per CI round) and ci_interventions.json (every intervention: the
+    observations intervened on, the ATE, the batch's seconds), rewritten whole each round."""
+    rows = [dataclasses.asdict(r) for r in ci.rounds]
+    lines = [",".join(rows[0])] + [",".join(str(v) for v in r.values()) for r in rows]
+    atomic_write_bytes(run.path / "ci_rounds.csv", ("\n".join(lines) + "\n").encode())
+    atomic_write_json(run.path / "ci_interventions.json", ci.intervention_log)
 
 
 def _finite_or_none(value: float) -> float | None:
