@@ -74,6 +74,13 @@ class TrainConfig:
     max_grad_norm: float = 0.5
     norm_adv: bool = True
 
+    # Exploration
+    exploration: Literal["none", "count"] = "none"
+    """count: intrinsic reward count_beta / sqrt(N(observation code)) (Tang et al. 2017)."""
+    count_beta: float = 0.1
+    count_key: str | None = None
+    """Count this info entry (e.g. agent_pos) instead of the observation."""
+
     # Counterfactual inference (methods t-hci and hci)
     ci_every: int = 8192
     """Env steps between CI rounds (the first runs once ci_min_episodes episodes are pooled)."""
@@ -150,6 +157,7 @@ class TrainConfig:
             "max_grad_norm": self.max_grad_norm,
             "solve_threshold": self.solve_threshold,
             "ci_xi": self.ci_xi,
+            "count_beta": self.count_beta,
         }
         for name, value in floats.items():
             if not math.isfinite(value):
@@ -160,7 +168,7 @@ class TrainConfig:
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise ThciError(f"--{_flag(name)} must lie in [0, 1], got {value}")
-        for name in ("clip_coef", "ent_coef", "vf_coef", "max_grad_norm"):
+        for name in ("clip_coef", "ent_coef", "vf_coef", "max_grad_norm", "count_beta"):
             if getattr(self, name) < 0:
                 raise ThciError(f"--{_flag(name)} must be >= 0, got {getattr(self, name)}")
         if self.ci_z < 2:

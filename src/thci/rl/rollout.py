@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from gymnasium.vector import VectorEnv
 
+from thci.errors import ThciError
 from thci.rl.agent import ActorCritic
 
 
@@ -36,6 +37,8 @@ class Rollout:
             elsewhere).
         causal: (T, N) bool info["causal"] of obs, or None when the env gives no labels.
         final_causal: (T, N) bool info["causal"] of final_obs, or None.
+        reached_info: the requested info keys of the observation each step reached, each
+            (T, N, ...) (the final observation's info where an episode ended).
     """
 
     obs: torch.Tensor
@@ -51,6 +54,7 @@ class Rollout:
     final_obs: torch.Tensor
     causal: torch.Tensor | None
     final_causal: torch.Tensor | None
+    reached_info: dict[str, np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -74,6 +78,7 @@ class RolloutCollector:
         gamma: discount, for the truncation bootstrap.
         success_return: for envs without info["success"], the return that counts as success.
         greedy: act with the most likely action instead of sampling (for evaluation).
+        info_keys: info entries to record for every reached observation (e.g. "agent_pos").
     """
 
     def __init__(
@@ -84,10 +89,12 @@ class RolloutCollector:
         gamma: float,
         success_return: float | None = None,
         greedy: bool = False,
+        info_keys: tuple[str, ...] = (),
     ) -> None:
         self.envs, self.agent = envs, agent
         self.num_envs, self.num_steps, self.gamma = envs.num_envs, num_steps, gamma
         self.success_return, self.greedy = success_return, greedy
+        self.info_keys = info_keys
         self.obs = torch.zeros(0)
         self.causal: torch.Tensor | None = None
         self.episode_start = torch.ones(self.num_envs, dtype=torch.bool)
@@ -119,6 +126,7 @@ class RolloutCollector:
         labelled = self.causal is not None
         causal = torch.zeros(T, N, dtype=torch.bool) if labelled else None
         final_causal = torch.zeros(T, N, dtype=torch.bool) if labelled else None
+        reached_info: dict[str, list[np.ndarray]] = {key: [] for key in self.info_keys}
         initial_state = self.state.clone()
         episodes: list[Episode] = []
 
@@ -144,6 +152,8 @@ class RolloutCollector:
                 final_obs[t, ended] = torch.as_tensor(
                     final_observations(infos, ended), dtype=torch.float32
                 )
+            for key in self.info_keys:
+                reached_info[key].append(_reached(infos, key, ended))
             if causal is not None and final_causal is not None:
                 causal[t] = self.causal
                 final_labels = _labels(infos.get("final_info", {}))
@@ -197,6 +207,7 @@ class RolloutCollector:
             final_obs,
             causal,
             final_causal,
+            {key: np.stack(values) for key, values in reached_info.items()},
         )
         return rollout, episodes
 
@@ -239,6 +250,16 @@ class RolloutCollector:
             return True
         self.reset(seed)
         return False
+
+
+def _reached(infos: dict[str, Any], key: str, ended: np.ndarray) -> np.ndarray:
+    """info[key] (N, ...) of the observations just reached (final_info where episodes ended)."""
+    if key not in infos:
+        raise ThciError(f"the environment's info has no {key!r} entry (needed by --count-key)")
+    values = np.array(infos[key])
+    if len(ended):
+        values[ended] = np.asarray(infos["final_info"][key])[ended]
+    return values
 
 
 def _labels(infos: dict[str, Any]) -> torch.Tensor | None:

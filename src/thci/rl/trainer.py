@@ -34,6 +34,7 @@ from thci.experiments.run_dir import (
 )
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
+from thci.rl.exploration import CountBonus
 from thci.rl.ppo import PPO
 from thci.rl.rollout import RolloutCollector
 from thci.rl.tracking import SolveTracker
@@ -96,9 +97,17 @@ def _train(
     torch.manual_seed(config.seed)
     agent = build_agent(config, envs)
     optimizer = torch.optim.Adam(agent.policy_parameters(), lr=config.learning_rate, eps=1e-5)
-    collector = RolloutCollector(envs, agent, config.num_steps, config.gamma, config.success_return)
+    counted = (config.count_key,) if config.exploration == "count" and config.count_key else ()
+    collector = RolloutCollector(
+        envs, agent, config.num_steps, config.gamma, config.success_return, info_keys=counted
+    )
     tracker = SolveTracker(config.solve_window, config.solve_threshold)
     algorithm = PPO(config)
+    bonus = None
+    if config.exploration == "count":
+        bonus = CountBonus(
+            envs.single_observation_space, config.count_beta, config.discretizer, config.count_key
+        )
     ci = None
     if agent.gate is not None:
         ci = CausalInferenceLoop(
@@ -129,6 +138,8 @@ def _train(
         tracker.load_state_dict(checkpoint["tracker"])
         if ci is not None:
             ci.load_state_dict(checkpoint["ci"])
+        if bonus is not None:
+            bonus.load_state_dict(checkpoint["exploration"])
         torch.set_rng_state(checkpoint["torch_rng"])
         if not collector.load_state_dict(checkpoint["collector"], seed=config.seed + update):
             tqdm.write(f"note: {config.env} cannot save its state; episodes restart on resume")
@@ -163,6 +174,7 @@ def _train(
                 "collector": collector.state_dict(),
                 "tracker": tracker.state_dict(),
                 "ci": None if ci is None else ci.state_dict(),
+                "exploration": None if bonus is None else bonus.state_dict(),
                 "torch_rng": torch.get_rng_state(),
             }
         )
@@ -175,6 +187,10 @@ def _train(
             rollout, episodes = collector.collect()
             tracker.add(episodes, global_step, config.num_envs)
             global_step += steps_per_update
+            if bonus is not None:
+                writer.add_scalar(
+                    "charts/intrinsic_reward", bonus.add_bonus(rollout, collector.obs), global_step
+                )
             losses = algorithm.update(agent, optimizer, rollout)
             update += 1
             if ci is not None:  # the CI loop runs on the pool between RL updates (Fig. 3)
