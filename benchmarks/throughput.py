@@ -63,7 +63,8 @@ def vector_env_rate(envs: gym.vector.VectorEnv, calls: int) -> float:
 
 
 def thci_training_rate(method: str, steps: int, num_envs: int, num_steps: int) -> float:
-    """Env steps/s of `thci train` (rollouts + PPO updates, no early stop)."""
+    """Env steps/s of `thci train` (rollouts + PPO updates, no early stop), with the same PPO
+    work per rollout as the RecurrentPPO run (4 epochs of 4 minibatches)."""
     with tempfile.TemporaryDirectory() as tmp:
         summary = train(
             TrainConfig(

@@ -21,6 +21,7 @@ from thci.envs.key_door_tv import (
     CORRIDOR,
     DOOR_CLOSED,
     DOOR_OPEN,
+    HALLWAY,
     KEY,
     NUM_CODES,
     TV,
@@ -35,7 +36,7 @@ def _play(env: KeyDoorTVEnv, start: int | None, first_action: int, seed: int | N
     options = None if start is None else {"start_code": start}
     obs, info = env.reset(seed=seed, options=options)
     trace = [(int(np.argmax(obs)), 0.0, False, False, info)]
-    for action in (first_action, 1):
+    for action in (first_action, 1, 1):
         obs, reward, terminated, truncated, info = env.step(action)
         assert obs.dtype == np.float32 and obs.shape == (NUM_CODES,) and obs.sum() == 1.0
         trace.append((int(np.argmax(obs)), reward, terminated, truncated, info))
@@ -51,12 +52,12 @@ def _play(env: KeyDoorTVEnv, start: int | None, first_action: int, seed: int | N
 def test_only_the_start_decides_the_door(start, door, reward, first_action):
     trace = _play(KeyDoorTVEnv(), start, first_action)
     codes = [t[0] for t in trace]
-    assert codes == [start, TV if first_action == 0 else CORRIDOR, door]
-    # Exactly 2 steps: the first does not end the episode, the second terminates it.
-    assert [t[2] for t in trace[1:]] == [False, True]
+    assert codes == [start, TV if first_action == 0 else CORRIDOR, HALLWAY, door]
+    # Exactly 3 steps: only the third (at the door) terminates the episode.
+    assert [t[2] for t in trace[1:]] == [False, False, True]
     assert not any(t[3] for t in trace)
-    assert [t[1] for t in trace[1:]] == [0.0, reward]
-    assert [t[4]["success"] for t in trace] == [False, False, reward == 1.0]
+    assert [t[1] for t in trace[1:]] == [0.0, 0.0, reward]
+    assert [t[4]["success"] for t in trace] == [False, False, False, reward == 1.0]
     assert [t[4]["code"] for t in trace] == codes
 
 
@@ -67,7 +68,7 @@ def test_random_starts_are_balanced_and_rewarded_by_the_key():
         trace = _play(env, None, first_action=seed % 2, seed=seed)
         starts.append(trace[0][0])
         assert trace[-1][1] == (1.0 if trace[0][0] == KEY else 0.0)
-        assert len(trace) == 3
+        assert len(trace) == 4
     assert set(starts) == {KEY, BALL}
     assert abs(np.mean(np.array(starts) == KEY) - 0.5) < 0.1
 
@@ -85,6 +86,7 @@ def test_causal_label_exactly_at_key_and_ball():
         BALL: {True},
         TV: {False},
         CORRIDOR: {False},
+        HALLWAY: {False},
         DOOR_OPEN: {False},
         DOOR_CLOSED: {False},
     }
@@ -107,8 +109,9 @@ def test_check_env_and_registration():
         check_env(env.unwrapped)
     obs, _ = env.reset(seed=3)
     assert obs.shape == (NUM_CODES,)
-    _, _, terminated, _, _ = env.step(0)
-    assert not terminated
+    for _ in range(2):
+        _, _, terminated, _, _ = env.step(0)
+        assert not terminated
     _, _, terminated, _, _ = env.step(0)
     assert terminated
     env.close()
@@ -128,12 +131,13 @@ def test_sample_episodes_format_and_seeding():
     episodes = sample_episodes(50, seed=7)
     assert len(episodes) == 50
     for e in episodes:
-        assert e.codes.dtype == np.int64 and e.codes.shape == (3,)
-        assert e.actions.dtype == np.int64 and e.actions.shape == (2,)
-        assert e.rewards.dtype == np.float32 and e.rewards.shape == (2,)
-        assert e.causal.tolist() == [True, False, False]
+        assert e.codes.dtype == np.int64 and e.codes.shape == (4,)
+        assert e.actions.dtype == np.int64 and e.actions.shape == (3,)
+        assert e.rewards.dtype == np.float32 and e.rewards.shape == (3,)
+        assert e.causal.tolist() == [True, False, False, False]
         assert e.codes[1] == (TV if e.actions[0] == 0 else CORRIDOR)
-        assert e.rewards.tolist() == [0.0, 1.0 if e.codes[0] == KEY else 0.0]
+        assert e.codes[2] == HALLWAY
+        assert e.rewards.tolist() == [0.0, 0.0, 1.0 if e.codes[0] == KEY else 0.0]
     again = sample_episodes(50, seed=7)
     assert all(np.array_equal(a.codes, b.codes) for a, b in zip(episodes, again, strict=True))
 

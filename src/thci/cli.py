@@ -1,4 +1,4 @@
-"""The ``thci`` command line: ``thci train``, ``thci evaluate``, ``thci envs``.
+"""The ``thci`` command line: ``thci train``, ``thci evaluate``, ``thci envs``, ``thci demo``.
 
 User mistakes raise :class:`~thci.errors.ThciError`; :func:`main` prints its one line and
 exits with status 2, so no traceback is ever shown for them.
@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import tyro
 
@@ -36,6 +36,16 @@ class EnvsArgs:
     """List thci's built-in environments."""
 
 
+@dataclass
+class DemoArgs:
+    """Run a demonstration of the method."""
+
+    name: Annotated[Literal["confounding"], tyro.conf.Positional] = "confounding"
+    """confounding: the key-to-door example of the paper's Fig. 1."""
+    episodes: int = 4000
+    seed: int = 0
+
+
 def format_table(rows: dict[str, Any]) -> str:
     """Two-column text table of `rows`."""
     width = max(len(k) for k in rows)
@@ -47,7 +57,7 @@ def format_table(rows: dict[str, Any]) -> str:
     return "\n".join([lines[0], *lines[1:], lines[0]])
 
 
-def run_command(args: TrainConfig | EvaluateArgs | EnvsArgs) -> None:
+def run_command(args: TrainConfig | EvaluateArgs | EnvsArgs | DemoArgs) -> None:
     """Execute one parsed command."""
     if isinstance(args, TrainConfig):
         from thci.rl.trainer import train
@@ -58,6 +68,12 @@ def run_command(args: TrainConfig | EvaluateArgs | EnvsArgs) -> None:
         from thci.rl.evaluate import evaluate
 
         print(format_table(evaluate(args.run_dir, args.episodes, args.greedy, args.seed)))
+    elif isinstance(args, DemoArgs):
+        from thci.experiments.demo import confounding_demo
+
+        if args.episodes < 10:
+            raise ThciError(f"--episodes must be at least 10, got {args.episodes}")
+        print(confounding_demo(args.episodes, args.seed).format())
     else:
         import gymnasium as gym
 
@@ -70,7 +86,7 @@ def run_command(args: TrainConfig | EvaluateArgs | EnvsArgs) -> None:
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``thci`` console script."""
     args = tyro.extras.subcommand_cli_from_dict(
-        {"train": TrainConfig, "evaluate": EvaluateArgs, "envs": EnvsArgs},
+        {"train": TrainConfig, "evaluate": EvaluateArgs, "envs": EnvsArgs, "demo": DemoArgs},
         args=argv,
         prog="thci",
         description="History-based RL with causal memory (T-HCI).",

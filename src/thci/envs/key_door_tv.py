@@ -9,17 +9,19 @@ the environment (registered as ``thci/KeyDoorTV-v0``), that confounded policy, a
 :func:`sample_episodes`, which turns its play into replay-pool episodes
 (:class:`thci.causal.replay.PoolEpisode`) for the estimators in :mod:`thci.causal.backdoor`.
 
-Episode (always 2 actions, 3 observations):
+Episode (always 3 actions, 4 observations):
 
 * reset: the agent stands on KEY (key collected) or BALL, ½ each.
 * step 1: action 0 walks past the TV (observe TV), action 1 the plain corridor (CORRIDOR).
-* step 2: any action reaches the door: DOOR_OPEN with reward 1 if the key was collected, else
+* step 2: any action enters the HALLWAY in front of the door, so that the TV (or corridor) is
+  part of the history when the door decides, as in Fig. 1.
+* step 3: any action reaches the door: DOOR_OPEN with reward 1 if the key was collected, else
   DOOR_CLOSED with reward 0; the episode terminates.
 
 Made-up layout used only for ``info["agent_pos"]`` (e.g. for heatmaps), rows top to bottom::
 
     KEY  TV
-                DOOR
+                HALLWAY DOOR
     BALL CORRIDOR
 """
 
@@ -37,6 +39,7 @@ __all__ = [
     "CORRIDOR",
     "DOOR_CLOSED",
     "DOOR_OPEN",
+    "HALLWAY",
     "KEY",
     "NUM_CODES",
     "TV",
@@ -58,21 +61,31 @@ DOOR_OPEN = 4
 """The door, seen open (reward 1): the key was collected."""
 DOOR_CLOSED = 5
 """The door, seen closed (reward 0): the key was not collected."""
-NUM_CODES = 6
+HALLWAY = 6
+"""The hallway in front of the door, walked on step 2."""
+NUM_CODES = 7
 """Size of the one-hot observation."""
 
-CODE_NAMES: tuple[str, ...] = ("KEY", "BALL", "CORRIDOR", "TV", "DOOR_OPEN", "DOOR_CLOSED")
+CODE_NAMES: tuple[str, ...] = (
+    "KEY",
+    "BALL",
+    "CORRIDOR",
+    "TV",
+    "DOOR_OPEN",
+    "DOOR_CLOSED",
+    "HALLWAY",
+)
 
 ACTION_TV = 0
 """Step-1 action that walks past the TV."""
 ACTION_CORRIDOR = 1
 """Step-1 action that walks the plain corridor."""
-EPISODE_STEPS = 2
+EPISODE_STEPS = 3
 """Every episode terminates after exactly this many steps."""
 
 # [row, col] of each code in the made-up layout of the module docstring.
 _POSITIONS = np.array(
-    [[0, 0], [2, 0], [2, 1], [0, 1], [1, 2], [1, 2]],
+    [[0, 0], [2, 0], [2, 1], [0, 1], [1, 3], [1, 3], [1, 2]],
     dtype=np.int64,
 )
 _CAUSAL = np.zeros(NUM_CODES, dtype=bool)
@@ -133,7 +146,7 @@ class KeyDoorTVEnv(gym.Env[np.ndarray, np.int64]):
     def step(
         self, action: int | np.integer
     ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """Step 1: TV (action 0) or corridor (action 1); step 2: the door (see class doc)."""
+        """Step 1: TV (action 0) or corridor (action 1); step 2: hallway; step 3: the door."""
         if not self._started:
             raise gym.error.ResetNeeded("call reset() before step() on KeyDoorTVEnv")
         if self._steps >= EPISODE_STEPS:
@@ -143,8 +156,11 @@ class KeyDoorTVEnv(gym.Env[np.ndarray, np.int64]):
                 f"invalid action {action!r}: expected 0 (past the TV) or 1 (plain corridor)"
             )
         self._steps += 1
-        if self._steps == 1:
-            self._code = TV if int(action) == ACTION_TV else CORRIDOR
+        if self._steps < EPISODE_STEPS:
+            if self._steps == 1:
+                self._code = TV if int(action) == ACTION_TV else CORRIDOR
+            else:
+                self._code = HALLWAY
             return self._observation(), 0.0, False, False, self._info(success=False)
         self._code = DOOR_OPEN if self._has_key else DOOR_CLOSED
         reward = 1.0 if self._has_key else 0.0
@@ -225,8 +241,8 @@ def sample_episodes(
         p_tv_given_ball: see :func:`confounded_sampling_policy`.
 
     Returns:
-        Replay-pool episodes: codes (3,) of o_1..o_3 (argmax of the one-hot observations),
-        actions (2,), rewards (2,) and the environment's ``info["causal"]`` labels (3,).
+        Replay-pool episodes: codes (4,) of o_1..o_4 (argmax of the one-hot observations),
+        actions (3,), rewards (3,) and the environment's ``info["causal"]`` labels (4,).
     """
     if num_episodes < 1:
         raise ThciError(f"num_episodes={num_episodes!r} must be at least 1")

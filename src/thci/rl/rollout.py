@@ -132,14 +132,19 @@ class RolloutCollector:
 
         for t in range(T):
             logits, value, state = self.agent.step(self.obs, self.state, self.episode_start)
-            dist = torch.distributions.Categorical(logits=logits)
-            action = logits.argmax(dim=-1) if self.greedy else dist.sample()
+            # Sampling from the logits directly: torch.distributions' argument checks cost
+            # about as much as the environment step here.
+            log_probs = torch.log_softmax(logits, dim=-1)
+            if self.greedy:
+                action = logits.argmax(dim=-1)
+            else:
+                action = torch.multinomial(log_probs.exp(), 1, replacement=True).squeeze(1)
             next_obs, reward, terminated, truncated, infos = self.envs.step(action.numpy())
 
             obs[t], actions[t], logprobs[t], values[t] = (
                 self.obs,
                 action,
-                dist.log_prob(action),
+                log_probs.gather(1, action.unsqueeze(1)).squeeze(1),
                 value,
             )
             episode_starts[t] = self.episode_start

@@ -40,7 +40,7 @@ from thci.rl.rollout import RolloutCollector
 from thci.rl.tracking import SolveTracker
 
 # summary.json fields that depend on the machine's speed, not on the seed.
-TIMING_FIELDS = ("wall_clock_s", "steps_per_second")
+TIMING_FIELDS = ("wall_clock_s", "steps_per_second", "ci_wall_clock_s", "ci_round_seconds")
 
 
 def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:

@@ -1,0 +1,133 @@
+"""The causal engine against cases with a known answer."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from thci.causal.gate import Gate
+from thci.causal.predictor import BatchedPredictor, EffectEstimator, PredictorConfig
+from thci.causal.replay import pad_episodes
+from thci.causal.search import hci, t_hci
+from thci.causal.synthetic import generate_planted_episodes
+from thci.causal.taie import taie_of_rollout
+from thci.experiments.demo import confounding_demo, door_deciders_kept
+from thci.memory import make_memory
+from thci.rl.agent import ActorCritic
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def planted():
+    data = generate_planted_episodes(32, num_causal=2, num_episodes=1500, seed=3)
+    with torch.random.fork_rng():
+        estimator = EffectEstimator(pad_episodes(data.episodes), 4, PredictorConfig(seed=0))
+    return data, estimator
+
+
+def test_t_hci_recovers_planted_causes_exactly_within_the_bound(planted):
+    data, estimator = planted
+    result = t_hci(estimator, z=4)
+    assert sorted(result.causal.tolist()) == sorted(data.causal_codes.tolist())
+    assert set(data.confounder_codes.ravel().tolist()) <= set(result.eliminated.tolist())
+    z, observed, causes = 4, len(result.observed), len(data.causal_codes)
+    bound = z * math.ceil(math.log(observed, z)) * causes + z
+    assert result.num_interventions <= bound
+
+
+def test_hci_recovers_planted_causes_with_one_intervention_per_observation(planted):
+    data, estimator = planted
+    result = hci(estimator)
+    assert sorted(result.causal.tolist()) == sorted(data.causal_codes.tolist())
+    singles = [r for r in result.interventions if r.kind == "test" and len(r.codes) == 1]
+    assert len({r.codes for r in singles}) == len(result.observed)
+
+
+def test_masking_removes_exactly_the_intervened_history_and_never_the_current_observation():
+    torch.manual_seed(0)
+    model = BatchedPredictor(
+        1, num_codes=5, num_actions=2, num_classes=5, config=PredictorConfig(), max_steps=4
+    )
+    with torch.no_grad():
+        model.embed.normal_()
+    ids = torch.tensor([[1, 2, 3, 4, 0]])  # o_1 .. o_5
+    actions = torch.zeros(1, 4, dtype=torch.long)
+    valid = torch.ones(1, 4, dtype=torch.bool)
+    masked = (ids == 2).unsqueeze(0)  # intervene on code 2 (at o_2)
+    before = model(ids, masked, actions, valid)
+    with torch.no_grad():
+        model.embed[0, 2] += 5.0  # change the intervened observation's value
+    after = model(ids, masked, actions, valid)
+    # transitions t = 3, 4 have o_2 only in their history: unaffected by its value
+    assert torch.allclose(before[0, 2:], after[0, 2:])
+    # transition t = 2 has o_2 as its *current* observation: never masked, so it changes
+    assert not torch.allclose(before[0, 1], after[0, 1])
+    # without the intervention the later transitions do depend on o_2
+    unmasked = model(ids, torch.zeros_like(masked), actions, valid)
+    with torch.no_grad():
+        model.embed[0, 2] -= 5.0
+    assert not torch.allclose(
+        unmasked[0, 2:], model(ids, torch.zeros_like(masked), actions, valid)[0, 2:]
+    )
+
+
+def test_gate_reproduces_eliminated_set_and_decides_unseen_observations():
+    torch.manual_seed(0)
+    observations = torch.eye(12)
+    eliminated = torch.tensor([1, 0, 1, 1, 0, 0, 1, 0, 1, 1, 1, 0], dtype=torch.bool)
+    gate = Gate(12)
+    assert gate.keep(observations) is None  # inactive until the first CI round
+    fit = gate.fit(observations, eliminated)
+    assert fit.accuracy == 1.0
+    assert torch.equal(gate.keep(observations), ~eliminated)
+    unseen = torch.rand(5, 12)
+    assert gate.keep(unseen).shape == (5,)
+
+
+def test_causal_memory_ignores_removed_observations():
+    torch.manual_seed(0)
+    gate = Gate(6)
+    eliminated = torch.tensor([False, True, True, False, False, False])
+    gate.fit(torch.eye(6), eliminated)
+    agent = ActorCritic(6, 3, make_memory("lstm", 8, 8), 8, gate=gate)
+    one_hot = torch.eye(6)
+    history = one_hot[[0, 1, 3, 1, 4]].unsqueeze(0)
+    swapped = one_hot[[0, 2, 3, 2, 4]].unsqueeze(0)  # removed observations changed
+    changed_kept = one_hot[[0, 1, 5, 1, 4]].unsqueeze(0)  # a kept observation changed
+    state = agent.initial_state(1)
+    logits, _, _ = agent(history, state)
+    logits_swapped, _, _ = agent(swapped, state)
+    logits_kept, _, _ = agent(changed_kept, state)
+    # From o_3 on, the removed observations at o_2 and o_4 must not matter ...
+    assert torch.allclose(logits[0, 2], logits_swapped[0, 2], atol=1e-6)
+    assert torch.allclose(logits[0, 4], logits_swapped[0, 4], atol=1e-6)
+    # ... while the current observation always does, and kept history does.
+    assert not torch.allclose(logits[0, 1], logits_swapped[0, 1], atol=1e-4)
+    assert not torch.allclose(logits[0, 4], logits_kept[0, 4], atol=1e-4)
+
+
+def test_taie_is_zero_for_a_perfect_gate_and_one_for_an_inverted_gate():
+    generator = torch.Generator().manual_seed(0)
+    labels = torch.rand(40, 6, generator=generator) < 0.3
+    starts = torch.rand(40, 6, generator=generator) < 0.1
+    starts[0] = True
+    dones = torch.zeros_like(starts)
+    dones[:-1] = starts[1:]
+    dones[-1] = True
+    perfect = taie_of_rollout(labels.float(), labels, starts, dones)
+    inverted = taie_of_rollout((~labels).float(), labels, starts, dones)
+    assert len(perfect) > 0
+    assert torch.all(perfect == 0)
+    assert torch.allclose(inverted, torch.ones_like(inverted))
+    half = taie_of_rollout(torch.full((40, 6), 0.5), labels, starts, dones)
+    assert torch.allclose(half, torch.full_like(half, 0.5))
+
+
+def test_confounding_demo_probabilities_and_causal_set():
+    demo = confounding_demo(num_episodes=4000, seed=0)
+    assert demo.naive_p_open_given_tv == pytest.approx(0.88, abs=0.03)
+    assert demo.adjusted_p_open_do_tv == pytest.approx(0.5, abs=0.03)
+    assert door_deciders_kept(demo.result)
+    assert np.isin(3, demo.result.eliminated)  # the TV
