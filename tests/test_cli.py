@@ -228,3 +228,25 @@ def test_t_hci_run_reports_ci_and_resumes_to_the_same_result(tmp_path):
     assert code == 0
     resumed = json.loads((tmp_path / "split" / "summary.json").read_text())
     assert without_timing(resumed) == without_timing(reference)
+
+
+def test_count_key_missing_from_info_is_refused_before_anything_is_written(tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    code = run_cli(
+        [
+            "train",
+            "--env",
+            "CartPole-v1",
+            "--exploration",
+            "count",
+            "--count-key",
+            "agent_pos",
+            "--run-dir",
+            str(run_dir),
+            "--total-steps",
+            "256",
+            *FAST,
+        ]
+    )
+    assert_one_line_error(capsys, code, "agent_pos")
+    assert not run_dir.exists()

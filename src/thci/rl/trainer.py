@@ -75,6 +75,14 @@ def train(config: TrainConfig) -> dict[str, Any]:
     torch.set_num_threads(config.torch_threads)
     envs = make_vector_env(config.env, config.num_envs, config.vectorization)
     try:
+        if config.exploration == "count" and config.count_key is not None:
+            _, infos = envs.reset(seed=config.seed)
+            if config.count_key not in infos:
+                reported = ", ".join(k for k in infos if not k.startswith("_")) or "nothing"
+                raise ThciError(
+                    f"{config.env} reports no info[{config.count_key!r}] for --count-key "
+                    f"(its info holds: {reported}); count observations by leaving it out"
+                )
         config = dataclasses.replace(config, run_dir=config.run_dir or default_run_dir(config))
         assert config.run_dir is not None
         if config.resume:
