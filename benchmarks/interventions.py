@@ -125,10 +125,12 @@ def main() -> None:
     parser.add_argument("--z", type=int, default=4)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    records = [run_size(n, args.hci_limit, args.fine_limit, args.z) for n in args.sizes]
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "interventions.json").write_text(json.dumps(records, indent=2) + "\n")
-    plot(records, RESULTS / "interventions.png")
+    records = []
+    for n in args.sizes:  # results are written after every size, so a long run keeps them
+        records.append(run_size(n, args.hci_limit, args.fine_limit, args.z))
+        (RESULTS / "interventions.json").write_text(json.dumps(records, indent=2) + "\n")
+        plot(records, RESULTS / "interventions.png")
     print(f"\n{'|Ô|':>7} | {'fine-grained':>16} | {'HCI':>16} | {'T-HCI':>16} | bound | exact")
     for r in records:
         cells = []
