@@ -73,6 +73,8 @@ def thci_training_rate(method: str, steps: int, num_envs: int, num_steps: int) -
                 total_steps=steps,
                 num_envs=num_envs,
                 num_steps=num_steps,
+                update_epochs=4,
+                num_minibatches=4,
                 run_dir=Path(tmp) / "run",
                 progress=False,
             )
