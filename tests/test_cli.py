@@ -250,3 +250,35 @@ def test_count_key_missing_from_info_is_refused_before_anything_is_written(tmp_p
     )
     assert_one_line_error(capsys, code, "agent_pos")
     assert not run_dir.exists()
+
+
+def test_count_exploration_adds_bonus_and_resumes_to_the_same_result(tmp_path):
+    args = [
+        "--exploration",
+        "count",
+        "--count-key",
+        "agent_pos",
+        "--count-beta",
+        "0.5",
+        "--seed",
+        "2",
+    ]
+    reference = train(tmp_path, "reference", "--total-steps", "4096", *args)
+    plain = train(tmp_path, "plain", "--total-steps", "4096", "--seed", "2")
+    assert without_timing(reference) != without_timing(plain)  # the bonus changes learning
+    train(tmp_path, "split", "--total-steps", "2048", *args)
+    code = run_cli(
+        [
+            "train",
+            "--run-dir",
+            str(tmp_path / "split"),
+            "--resume",
+            *FAST,
+            "--total-steps",
+            "4096",
+            *args,
+        ]
+    )
+    assert code == 0
+    resumed = json.loads((tmp_path / "split" / "summary.json").read_text())
+    assert without_timing(resumed) == without_timing(reference)

@@ -371,3 +371,17 @@ def make_discretizer(
     obs_dim = int(np.prod(shape)) if len(shape) else 1
     centre = _default_centre(observation_space, sample, obs_dim)
     return SimHashDiscretizer(obs_dim, bits=bits, seed=seed, centre=centre)
+
+
+def discretizer_from_state(state: dict[str, Any]) -> Discretizer:
+    """Rebuild the discretizer that wrote `state` (its ``state_dict()``, e.g. from a checkpoint)."""
+    kind = state.get("kind")
+    discretizer: Discretizer
+    if kind == ExactDiscretizer.kind:
+        discretizer = ExactDiscretizer()
+    elif kind == SimHashDiscretizer.kind:
+        discretizer = SimHashDiscretizer(state["obs_dim"], state["bits"], state["seed"])
+    else:
+        raise ThciError(f"unknown discretizer state kind {kind!r}: the checkpoint is damaged")
+    discretizer.load_state_dict(state)
+    return discretizer

@@ -17,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from thci.causal.discretize import Discretizer, make_discretizer
+from thci.causal.discretize import Discretizer, discretizer_from_state, make_discretizer
 from thci.causal.gate import Gate
 from thci.causal.predictor import EffectEstimator, PredictorConfig
 from thci.causal.replay import PoolEpisode, ReplayPool, pad_episodes
@@ -266,10 +266,7 @@ class CausalInferenceLoop:
             None if p is None else {k: v.numpy() for k, v in p.items()} for p in state["pending"]
         ]
         if state["discretizer"] is not None:
-            self.discretizer = make_discretizer(
-                state["discretizer"]["kind"], self.observation_space
-            )
-            self.discretizer.load_state_dict(state["discretizer"])
+            self.discretizer = discretizer_from_state(state["discretizer"])
         self.rounds = [CIRound(**r) for r in state["rounds"]]
         self.intervention_log = state["intervention_log"]
         if state["last_causal"] is not None:

@@ -20,7 +20,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from thci.causal.discretize import Discretizer, make_discretizer
+from thci.causal.discretize import Discretizer, discretizer_from_state, make_discretizer
 from thci.rl.rollout import Rollout
 
 
@@ -81,10 +81,5 @@ class CountBonus:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["discretizer"] is not None:
-            space = self.observation_space
-            if self.count_key is not None:
-                size = state["discretizer"].get("obs_dim", 1)
-                space = gym.spaces.Box(-np.inf, np.inf, (size,))
-            self.discretizer = make_discretizer(state["discretizer"]["kind"], space)
-            self.discretizer.load_state_dict(state["discretizer"])
+            self.discretizer = discretizer_from_state(state["discretizer"])
         self.counts = state["counts"].numpy().copy()
