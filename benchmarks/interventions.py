@@ -83,17 +83,24 @@ def run_size(num_codes: int, hci_limit: int, fine_limit: int, z: int) -> dict:
 
 def plot(records: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for name, marker in (("fine-grained", "s"), ("hci", "o"), ("t-hci", "^")):
+    styles = {
+        "fine-grained": ("s", "tab:blue"),
+        "hci": ("o", "tab:orange"),
+        "t-hci": ("^", "tab:green"),
+    }
+    for name, (marker, color) in styles.items():
         done = [r for r in records if not r[name].get("skipped")]
         sizes = [r["observed"] for r in done]
-        axes[0].plot(sizes, [r[name]["interventions"] for r in done], marker=marker, label=name)
-        axes[1].plot(sizes, [r[name]["seconds"] for r in done], marker=marker, label=name)
+        style = {"marker": marker, "color": color, "label": name}
+        axes[0].plot(sizes, [r[name]["interventions"] for r in done], **style)
+        axes[1].plot(sizes, [r[name]["seconds"] for r in done], **style)
         skipped = [r for r in records if r[name].get("skipped")]
         if skipped:
             axes[0].plot(
                 [r["num_codes"] for r in skipped],
                 [r[name]["projected_interventions"] for r in skipped],
                 marker=marker,
+                color=color,
                 linestyle=":",
                 alpha=0.5,
                 label=f"{name} (projected)",
@@ -105,6 +112,7 @@ def plot(records: list[dict], path: Path) -> None:
         linewidth=1,
         label="Z·⌈log_Z|Ô|⌉·|O^Ca|+Z",
     )
+    axes[1].legend(fontsize=8)
     for ax, label in zip(axes, ("interventions", "search wall-clock (s)"), strict=True):
         ax.set_xscale("log")
         ax.set_yscale("log")
