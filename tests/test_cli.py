@@ -185,6 +185,15 @@ def test_lstm_ppo_learns_paper_maze_level1(tmp_path):
     assert evaluation["success_rate"] >= 0.8
 
 
+def assert_stop_and_resume_matches(tmp_path: Path, reference: dict, args: list[str]) -> None:
+    """A run stopped at 2048 steps and resumed to 4096 ends like `reference` (4096 at once)."""
+    train(tmp_path, "split", "--total-steps", "2048", *args)
+    resume = ["--run-dir", str(tmp_path / "split"), "--resume", "--total-steps", "4096"]
+    assert run_cli(["train", *resume, *FAST, *args]) == 0
+    resumed = json.loads((tmp_path / "split" / "summary.json").read_text())
+    assert without_timing(resumed) == without_timing(reference)
+
+
 T_HCI_FAST = [
     "--method",
     "t-hci",
@@ -212,22 +221,7 @@ def test_t_hci_run_reports_ci_and_resumes_to_the_same_result(tmp_path):
     log = json.loads((tmp_path / "reference" / "ci_interventions.json").read_text())
     assert len(log) == reference["interventions"]
 
-    train(tmp_path, "split", "--total-steps", "2048", *T_HCI_FAST)
-    code = run_cli(
-        [
-            "train",
-            "--run-dir",
-            str(tmp_path / "split"),
-            "--resume",
-            *FAST,
-            "--total-steps",
-            "4096",
-            *T_HCI_FAST,
-        ]
-    )
-    assert code == 0
-    resumed = json.loads((tmp_path / "split" / "summary.json").read_text())
-    assert without_timing(resumed) == without_timing(reference)
+    assert_stop_and_resume_matches(tmp_path, reference, T_HCI_FAST)
 
 
 def test_count_key_missing_from_info_is_refused_before_anything_is_written(tmp_path, capsys):
@@ -266,19 +260,4 @@ def test_count_exploration_adds_bonus_and_resumes_to_the_same_result(tmp_path):
     reference = train(tmp_path, "reference", "--total-steps", "4096", *args)
     plain = train(tmp_path, "plain", "--total-steps", "4096", "--seed", "2")
     assert without_timing(reference) != without_timing(plain)  # the bonus changes learning
-    train(tmp_path, "split", "--total-steps", "2048", *args)
-    code = run_cli(
-        [
-            "train",
-            "--run-dir",
-            str(tmp_path / "split"),
-            "--resume",
-            *FAST,
-            "--total-steps",
-            "4096",
-            *args,
-        ]
-    )
-    assert code == 0
-    resumed = json.loads((tmp_path / "split" / "summary.json").read_text())
-    assert without_timing(resumed) == without_timing(reference)
+    assert_stop_and_resume_matches(tmp_path, reference, args)
