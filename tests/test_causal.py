@@ -9,7 +9,7 @@ import torch
 from thci.causal.gate import Gate
 from thci.causal.predictor import BatchedPredictor, EffectEstimator, PredictorConfig
 from thci.causal.replay import pad_episodes
-from thci.causal.search import hci, t_hci
+from thci.causal.search import fine_grained_ci, hci, t_hci
 from thci.causal.synthetic import generate_planted_episodes
 from thci.causal.taie import taie_of_rollout
 from thci.experiments.demo import confounding_demo, door_deciders_kept
@@ -131,3 +131,14 @@ def test_confounding_demo_probabilities_and_causal_set():
     assert demo.adjusted_p_open_do_tv == pytest.approx(0.5, abs=0.03)
     assert door_deciders_kept(demo.result)
     assert np.isin(3, demo.result.eliminated)  # the TV
+
+
+def test_fine_grained_ci_tests_every_observation_at_every_history_step():
+    data = generate_planted_episodes(10, num_causal=1, num_episodes=800, episode_length=6, seed=1)
+    with torch.random.fork_rng():
+        estimator = EffectEstimator(pad_episodes(data.episodes), 4, PredictorConfig(seed=0))
+    result = fine_grained_ci(estimator)
+    pairs = {(r.codes, r.step) for r in result.interventions}
+    history_steps = estimator.data.actions.shape[1] - 1
+    assert len(pairs) == len(result.interventions) == len(result.observed) * history_steps
+    assert set(data.causal_codes.tolist()) <= set(result.causal.tolist())

@@ -91,8 +91,10 @@ class ReplayPool:
         """Append an episode; `observations` (L + 1, D) supplies representatives of new codes."""
         self.episodes.append(episode)
         if observations is not None:
-            for code, obs in zip(episode.codes.tolist(), observations, strict=True):
-                self.observations.setdefault(code, obs)
+            # Only the episode's distinct codes are looked up, not every step.
+            codes, first = np.unique(episode.codes, return_index=True)
+            for code, index in zip(codes.tolist(), first.tolist(), strict=True):
+                self.observations.setdefault(code, observations[index])
 
     def observed_codes(self) -> np.ndarray:
         """The observed space Ô: sorted distinct codes in the pool, (|Ô|,) int64."""

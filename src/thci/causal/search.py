@@ -64,13 +64,20 @@ class _Search:
         self.records: list[InterventionRecord] = []
 
     def _run(self, sets: list[np.ndarray], kind: str = "test") -> np.ndarray:
+        """ATEs of masking each set (with O^w), logged; see :meth:`run_interventions`."""
+        return self.run_interventions([Intervention(s) for s in sets], kind)
+
+    def run_interventions(self, interventions: list[Intervention], kind: str = "test"):
+        """One batched ATE estimate of `interventions` given O^w; every one is logged."""
         started = time.perf_counter()
-        ates = self.estimator.ate([Intervention(s) for s in sets], self.eliminated)
+        ates = self.estimator.ate(interventions, self.eliminated)
         seconds = time.perf_counter() - started
         observed = self.estimator.data.observed
-        for s, ate in zip(sets, ates, strict=True):
-            codes = tuple(int(c) for c in observed[s])
-            self.records.append(InterventionRecord(codes, float(ate), seconds, kind=kind))
+        for intervention, ate in zip(interventions, ates, strict=True):
+            codes = tuple(int(c) for c in observed[intervention.codes])
+            self.records.append(
+                InterventionRecord(codes, float(ate), seconds, intervention.step, kind)
+            )
         return ates
 
     def resolve(self, parts: list[np.ndarray]) -> list[np.ndarray]:
@@ -158,14 +165,7 @@ def fine_grained_ci(estimator: EffectEstimator, xi: float = 0.1, batch_size: int
     causal = set()
     for begin in range(0, len(pairs), batch_size):
         chunk = pairs[begin : begin + batch_size]
-        run_started = time.perf_counter()
-        ates = estimator.ate([Intervention(np.array([c]), t) for c, t in chunk], search.eliminated)
-        seconds = time.perf_counter() - run_started
-        for (c, t), ate in zip(chunk, ates, strict=True):
-            search.records.append(
-                InterventionRecord((int(data.observed[c]),), float(ate), seconds, step=t)
-            )
-            if ate > xi:
-                causal.add(c)
+        ates = search.run_interventions([Intervention(np.array([c]), t) for c, t in chunk])
+        causal.update(c for (c, _), ate in zip(chunk, ates, strict=True) if ate > xi)
     search.eliminated = np.array(sorted(set(range(data.num_codes)) - causal), dtype=np.int64)
     return search.result("fine-grained", started)
