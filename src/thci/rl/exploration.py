@@ -1,15 +1,22 @@
-"""Count-based exploration on discretized observations (#Exploration, Tang et al. 2017).
+"""Intrinsic rewards for exploration: count-based and episodic novelty.
 
 Every observation the agent reaches is mapped to a code by the same discretizers T-HCI uses
-(exact codes for symbolic observations, SimHash for continuous ones), and the step that reached
-it earns an intrinsic reward beta / sqrt(N(code)), N counting every visit so far. When the
-observation is a poor proxy of the state (the maze's corridor codes repeat over many cells),
-``count_key`` counts an info entry the environment reports instead (e.g. ``"agent_pos"``,
-which every built-in environment provides); exploration then uses state information the agent's
-policy never sees. Rarely seen
-observations (the far goals of Maze levels 3-4) pay most, and the bonus fades as they become
-familiar, leaving the task's own reward. It is an option for every method (``--exploration
-count``), so baselines can be compared under the same exploration.
+(exact codes for symbolic observations, SimHash for continuous ones). When the observation is
+a poor proxy of the state (the maze's corridor codes repeat over many cells), ``count_key``
+codes an info entry the environment reports instead (e.g. ``"agent_pos"``, which every
+built-in environment provides); exploration then uses state information the agent's policy
+never sees. Two bonuses are built on these codes:
+
+* ``count`` (#Exploration, Tang et al. 2017): beta / sqrt(N(code)), N counting every visit
+  so far. Rare observations pay most and the bonus fades as they become familiar.
+* ``episodic`` (the episodic-novelty half of NGU, Badia et al. 2020): beta for each code
+  reached for the first time *in the current episode*. It never fades, and it pays for going
+  somewhere new rather than for dithering, which is what a sparse, far goal at the end of a
+  corridor needs (Maze levels 3-4: four goals 11 steps away, 1.5% of random walks reach one).
+  Keep beta · (most new codes per episode) well under the task's reward so the task decides.
+
+Both are options for every method (``--exploration count|episodic``), so baselines can be
+compared under the same exploration.
 """
 
 from __future__ import annotations
@@ -24,14 +31,14 @@ from thci.causal.discretize import Discretizer, discretizer_from_state, make_dis
 from thci.rl.rollout import Rollout
 
 
-class CountBonus:
-    """Intrinsic reward beta / sqrt(N(code of the observation reached)).
+class ExplorationBonus:
+    """Codes of the observations a rollout reached; subclasses turn them into a bonus.
 
     Args:
         observation_space: the flat single-env observation space.
         beta: scale of the bonus.
         kind: discretizer kind ("auto", "exact", "simhash").
-        count_key: count this info entry of the reached observation instead (None: the
+        count_key: code this info entry of the reached observation instead (None: the
             observation itself).
     """
 
@@ -45,10 +52,9 @@ class CountBonus:
         self.observation_space, self.beta, self.kind = observation_space, beta, kind
         self.count_key = count_key
         self.discretizer: Discretizer | None = None
-        self.counts = np.zeros(0, dtype=np.int64)
 
-    def add_bonus(self, rollout: Rollout, next_obs: torch.Tensor) -> float:
-        """Add the bonus to ``rollout.rewards`` in place; returns its mean per step.
+    def reached_codes(self, rollout: Rollout, next_obs: torch.Tensor) -> np.ndarray:
+        """(T, N) codes of what each step reached (the final observation where one ended).
 
         Args:
             rollout: a collected rollout (T, N).
@@ -65,21 +71,99 @@ class CountBonus:
             space = gym.spaces.Box(-np.inf, np.inf, flat.shape[1:])
         if self.discretizer is None:
             self.discretizer = make_discretizer(self.kind, space, sample=flat)
-        codes = self.discretizer.encode(flat)
-        if self.discretizer.num_codes > len(self.counts):
-            self.counts = np.pad(self.counts, (0, self.discretizer.num_codes - len(self.counts)))
-        self.counts += np.bincount(codes, minlength=len(self.counts))
-        bonus = self.beta / np.sqrt(self.counts[codes])
-        rollout.rewards += torch.as_tensor(bonus, dtype=torch.float32).view_as(rollout.rewards)
+        return self.discretizer.encode(flat).reshape(rollout.rewards.shape)
+
+    def add_bonus(self, rollout: Rollout, next_obs: torch.Tensor) -> float:
+        """Add the bonus to ``rollout.rewards`` in place; returns its mean per step."""
+        bonus = self.bonus(self.reached_codes(rollout, next_obs), rollout.dones.numpy())
+        rollout.rewards += torch.as_tensor(bonus, dtype=torch.float32)
         return float(bonus.mean())
 
+    def bonus(self, codes: np.ndarray, dones: np.ndarray) -> np.ndarray:
+        """(T, N) intrinsic reward of reaching `codes` (T, N); `dones` (T, N) ends episodes."""
+        raise NotImplementedError
+
     def state_dict(self) -> dict[str, Any]:
-        return {
-            "discretizer": None if self.discretizer is None else self.discretizer.state_dict(),
-            "counts": torch.as_tensor(self.counts),
-        }
+        return {"discretizer": None if self.discretizer is None else self.discretizer.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["discretizer"] is not None:
             self.discretizer = discretizer_from_state(state["discretizer"])
+
+
+class CountBonus(ExplorationBonus):
+    """beta / sqrt(N(code of the observation reached)), N over the whole run."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.counts = np.zeros(0, dtype=np.int64)
+
+    def bonus(self, codes: np.ndarray, dones: np.ndarray) -> np.ndarray:
+        self.counts = _grow(self.counts, int(codes.max()) + 1, axis=0)
+        self.counts += np.bincount(codes.ravel(), minlength=len(self.counts))
+        return self.beta / np.sqrt(self.counts[codes])
+
+    def state_dict(self) -> dict[str, Any]:
+        return {**super().state_dict(), "counts": torch.as_tensor(self.counts)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
         self.counts = state["counts"].numpy().copy()
+
+
+class EpisodicNoveltyBonus(ExplorationBonus):
+    """beta when the code reached is new in the current episode of that environment.
+
+    Args:
+        num_envs: N (each environment's episode keeps its own visited set).
+        (the rest as :class:`ExplorationBonus`)
+    """
+
+    def __init__(self, *args: Any, num_envs: int, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.visited = np.zeros((num_envs, 0), dtype=bool)  # (N, codes seen so far)
+
+    def bonus(self, codes: np.ndarray, dones: np.ndarray) -> np.ndarray:
+        self.visited = _grow(self.visited, int(codes.max()) + 1, axis=1)
+        envs = np.arange(codes.shape[1])
+        new = np.empty(codes.shape, dtype=bool)
+        for t in range(len(codes)):  # T vector steps: visits within a rollout are sequential
+            new[t] = ~self.visited[envs, codes[t]]
+            self.visited[envs, codes[t]] = True
+            self.visited[dones[t]] = False  # the next episode starts with nothing visited
+        return self.beta * new
+
+    def state_dict(self) -> dict[str, Any]:
+        return {**super().state_dict(), "visited": torch.as_tensor(self.visited)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        self.visited = state["visited"].numpy().copy()
+
+
+def _grow(array: np.ndarray, size: int, axis: int) -> np.ndarray:
+    """Zero-pad `array` along `axis` up to `size` (the discretizer met new codes)."""
+    missing = size - array.shape[axis]
+    if missing <= 0:
+        return array
+    widths = [(0, 0)] * array.ndim
+    widths[axis] = (0, missing)
+    return np.pad(array, widths)
+
+
+def make_exploration_bonus(
+    kind: str,
+    observation_space: gym.Space,
+    beta: float,
+    discretizer: str,
+    count_key: str | None,
+    num_envs: int,
+) -> ExplorationBonus | None:
+    """The bonus named by ``--exploration`` (None for "none")."""
+    if kind == "count":
+        return CountBonus(observation_space, beta, discretizer, count_key)
+    if kind == "episodic":
+        return EpisodicNoveltyBonus(
+            observation_space, beta, discretizer, count_key, num_envs=num_envs
+        )
+    return None

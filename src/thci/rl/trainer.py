@@ -34,7 +34,7 @@ from thci.experiments.run_dir import (
 )
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
-from thci.rl.exploration import CountBonus
+from thci.rl.exploration import make_exploration_bonus
 from thci.rl.ppo import PPO
 from thci.rl.rollout import RolloutCollector
 from thci.rl.tracking import SolveTracker
@@ -75,7 +75,7 @@ def train(config: TrainConfig) -> dict[str, Any]:
     torch.set_num_threads(config.torch_threads)
     envs = make_vector_env(config.env, config.num_envs, config.vectorization)
     try:
-        if config.exploration == "count" and config.count_key is not None:
+        if config.exploration != "none" and config.count_key is not None:
             _, infos = envs.reset(seed=config.seed)
             if config.count_key not in infos:
                 reported = ", ".join(k for k in infos if not k.startswith("_")) or "nothing"
@@ -105,17 +105,20 @@ def _train(
     torch.manual_seed(config.seed)
     agent = build_agent(config, envs)
     optimizer = torch.optim.Adam(agent.policy_parameters(), lr=config.learning_rate, eps=1e-5)
-    counted = (config.count_key,) if config.exploration == "count" and config.count_key else ()
+    counted = (config.count_key,) if config.exploration != "none" and config.count_key else ()
     collector = RolloutCollector(
         envs, agent, config.num_steps, config.gamma, config.success_return, info_keys=counted
     )
     tracker = SolveTracker(config.solve_window, config.solve_threshold)
     algorithm = PPO(config)
-    bonus = None
-    if config.exploration == "count":
-        bonus = CountBonus(
-            envs.single_observation_space, config.count_beta, config.discretizer, config.count_key
-        )
+    bonus = make_exploration_bonus(
+        config.exploration,
+        envs.single_observation_space,
+        config.count_beta,
+        config.discretizer,
+        config.count_key,
+        config.num_envs,
+    )
     ci = None
     if agent.gate is not None:
         ci = CausalInferenceLoop(
