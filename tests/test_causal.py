@@ -56,20 +56,22 @@ def test_masking_removes_exactly_the_intervened_history_and_never_the_current_ob
     actions = torch.zeros(1, 4, dtype=torch.long)
     valid = torch.ones(1, 4, dtype=torch.bool)
     masked = (ids == 2).unsqueeze(0)  # intervene on code 2 (at o_2)
-    before = model(ids, masked, actions, valid)
+    code_2 = (torch.arange(5) == 2).view(1, 1, 5)  # the intervened set the predictor is told
+    none_masked = torch.zeros_like(code_2)
+    before = model(ids, masked, code_2, actions, valid)
     with torch.no_grad():
         model.embed[0, 2] += 5.0  # change the intervened observation's value
-    after = model(ids, masked, actions, valid)
+    after = model(ids, masked, code_2, actions, valid)
     # transitions t = 3, 4 have o_2 only in their history: unaffected by its value
     assert torch.allclose(before[0, 2:], after[0, 2:])
     # transition t = 2 has o_2 as its *current* observation: never masked, so it changes
     assert not torch.allclose(before[0, 1], after[0, 1])
     # without the intervention the later transitions do depend on o_2
-    unmasked = model(ids, torch.zeros_like(masked), actions, valid)
+    unmasked = model(ids, torch.zeros_like(masked), none_masked, actions, valid)
     with torch.no_grad():
         model.embed[0, 2] -= 5.0
     assert not torch.allclose(
-        unmasked[0, 2:], model(ids, torch.zeros_like(masked), actions, valid)[0, 2:]
+        unmasked[0, 2:], model(ids, torch.zeros_like(masked), none_masked, actions, valid)[0, 2:]
     )
 
 

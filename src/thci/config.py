@@ -75,8 +75,9 @@ class TrainConfig:
     norm_adv: bool = True
 
     # Exploration
-    exploration: Literal["none", "count"] = "none"
-    """count: intrinsic reward count_beta / sqrt(N(observation code)) (Tang et al. 2017)."""
+    exploration: Literal["none", "count", "episodic"] = "none"
+    """Intrinsic reward: count = count_beta / sqrt(N(code)) over the run (Tang et al. 2017);
+    episodic = count_beta for each code reached for the first time in the episode (NGU)."""
     count_beta: float = 0.1
     count_key: str | None = None
     """Count this info entry (e.g. agent_pos) instead of the observation."""
@@ -92,15 +93,15 @@ class TrainConfig:
     """Capacity of the replay pool (whole episodes, oldest dropped first)."""
     ci_z: int = 4
     """Z: parts each candidate set is split into (T-HCI)."""
-    ci_xi: float = 0.1
+    ci_xi: float = 0.05
     """xi: an observation set whose ATE (extra prediction error per episode) is <= xi has no
     causal effect."""
     ci_target: Literal["dynamics", "inverse"] = "dynamics"
     """What p_zeta predicts: next observation and reward, or the action (inverse dynamics)."""
-    ci_base_steps: int = 300
-    """Adam steps of the base effect predictor per round."""
-    ci_finetune_steps: int = 100
-    """Adam steps of each (batched) intervention's predictor."""
+    ci_base_steps: int = 1000
+    """Adam steps of the effect predictor per round (fitted once, answers every intervention)."""
+    ci_finetune_steps: int = 0
+    """Optional Adam steps of per-intervention fine-tuning (0: off, see causal/predictor.py)."""
     ci_threads: int = 1
     """torch threads during CI rounds. 2 is ~1.3x faster on two cores, but multi-threaded
     reductions make CI results differ between processes in the last bits, which can flip a
@@ -143,12 +144,13 @@ class TrainConfig:
             "ci_max_rounds": self.ci_max_rounds,
             "ci_pool_episodes": self.ci_pool_episodes,
             "ci_base_steps": self.ci_base_steps,
-            "ci_finetune_steps": self.ci_finetune_steps,
             "ci_threads": self.ci_threads,
         }
         for name, value in positive_ints.items():
             if value <= 0:
                 raise ThciError(f"--{_flag(name)} must be a positive integer, got {value}")
+        if self.ci_finetune_steps < 0:
+            raise ThciError(f"--ci-finetune-steps must be >= 0, got {self.ci_finetune_steps}")
         floats = {
             "learning_rate": self.learning_rate,
             "gamma": self.gamma,

@@ -2,20 +2,33 @@
 
 An *intervention* replaces, in every history h_{t-1}, the observations whose code lies in a set
 S ∪ O^w by zero vectors (Eq. 3); the current observation o_t is never masked. p_ζ is fitted on
-the masked histories and its held-out prediction error is compared with that of an
-control predictor (see the estimator below).
+the masked histories and its held-out prediction error is compared with that of a
+control arm (see the estimator below).
 
 Predictor. Each code has a learned embedding (zero-initialized, so a code the predictor never
 learned to use behaves like a masked one). The history h_{t-1} is summarized by the running
-max and running mean of the embeddings of o_1 … o_{t-1} (masked ones contribute the zero
-vector). This order-free summary matches the method's assumption that causal effects do not
-depend on the time step, and needs no loop over time. A two-layer MLP maps [history, embedding
-of o_t, a_t] to
+max of the embeddings of the *kept* observations among o_1 … o_{t-1} (a masked one leaves no
+trace, not even its slot). This order-free summary matches the method's assumption that causal
+effects do not depend on the time step, and needs no loop over time. A two-layer MLP maps
+[history, embedding of o_t, a_t, embedding of t, embedding of the intervened set] to
 
 * ``dynamics`` (Eq. 9): a distribution over the next observation's code (codes beyond
   `max_classes` are hashed into that many buckets, a coarsening that can only hide effects,
   never invent them) and the reward; or
 * ``inverse``: a distribution over a_t, from [history, o_t, o_{t+1}].
+
+One network for every intervention. Eq. 9 minimizes over ζ separately for each intervention.
+Here a single predictor is fitted once per CI round under *random* interventions (each episode
+of a minibatch has whole codes removed at a rate drawn from U[0, 1]) and is told which codes
+its intervention masks (the sum of learned embeddings of the masked codes, never whether they
+occurred in the episode). It therefore represents the family of per-intervention minimizers,
+p_ζ(· | h^{masked by S}, S), and every ATE of the search is a forward pass on held-out
+episodes: no per-intervention fitting, and no fitting noise that differs between arms. Telling
+the set matters: without it "c is absent" (not observed) and "c is masked" look alike and the
+effect of a cause masked in an otherwise rich history is underestimated. Per-intervention
+fine-tuning from this network remains available (`finetune_steps`, continuing the fit's Adam
+moments) but is off by default: short fine-tunes add arm-to-arm noise of the size of the
+effects sought.
 
 Estimator. The per-transition error is the L1 distance of Eq. 9 between the predicted
 distribution and the observed outcome, 2·(1 − p(observed)) / 2 = 1 − p(observed), plus
@@ -25,18 +38,10 @@ distribution and the observed outcome, 2·(1 − p(observed)) / 2 = 1 − p(obse
     ATE(S) = mean of D_e(S) over held-out episodes e whose history contains S somewhere
 
 i.e. the extra prediction error per episode (Eq. 4 sums over t) that the intervention causes
-where it applies (Prop. 2 integrates over histories that contain O^i). The control predictor
-masks O^w only, so the ATE is the effect of S *given* the eliminated set, which is what the
+where it applies (Prop. 2 integrates over histories that contain O^i). The control arm masks
+O^w only, so the ATE is the effect of S *given* the eliminated set, which is what the
 sequential elimination of the search needs; the environment's own noise, and whatever masking
-O^w costs, hit the control and the intervened predictor alike and cancel.
-
-Reuse. The base predictor is fitted once per CI round; every intervention and its control are
-warm-started from it and fine-tuned on the *same* minibatches, K interventions at a time in one
-batched model (parameters carry a leading K dimension), so a round costs one base fit plus a
-short fine-tune per batch of interventions. Warm starts are only sound if fine-tuning does not
-add a cost of its own: the base is therefore fitted under random interventions (whole codes
-removed from each episode's history at a rate drawn from U[0, 1]), so histories with any set of
-observations removed are familiar to it.
+O^w costs, hit the control and the intervened arm alike and cancel.
 
 Known limits (see the issues): with coarse parts, the per-episode ATE is averaged over almost
 every episode, which dilutes a rare cause's effect; and an observation that the *policy* makes
@@ -47,7 +52,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -65,10 +70,10 @@ class PredictorConfig:
     target: Target = "dynamics"
     embed_dim: int = 16
     hidden_size: int = 64
-    base_steps: int = 300
+    base_steps: int = 1000
     """Adam steps of the base predictor fit (once per CI round)."""
-    finetune_steps: int = 100
-    """Adam steps of each warm-started intervention (and of the control)."""
+    finetune_steps: int = 0
+    """Adam steps of per-intervention fine-tuning (0: the shared network answers directly)."""
     batch_episodes: int = 128
     learning_rate: float = 3e-3
     code_dropout: float = 1.0
@@ -149,8 +154,9 @@ class BatchedPredictor(nn.Module):
         extra = num_actions if config.target == "dynamics" else d
         out = num_classes + 1 if config.target == "dynamics" else num_actions
         self.embed = nn.Parameter(torch.zeros(num_models, num_codes, d))
+        self.mask_embed = nn.Parameter(torch.zeros(num_models, num_codes, d))
         self.step_embed = nn.Parameter(torch.zeros(num_models, max_steps, d))
-        self.w1 = nn.Parameter(_uniform(num_models, 3 * d + extra, h))
+        self.w1 = nn.Parameter(_uniform(num_models, 4 * d + extra, h))
         self.b1 = nn.Parameter(torch.zeros(num_models, 1, h))
         self.w2 = nn.Parameter(_uniform(num_models, h, out))
         self.b2 = nn.Parameter(torch.zeros(num_models, 1, out))
@@ -160,19 +166,26 @@ class BatchedPredictor(nn.Module):
         clone = BatchedPredictor.__new__(BatchedPredictor)
         nn.Module.__init__(clone)
         clone.target, clone.num_actions = self.target, self.num_actions
-        for name in ("embed", "step_embed", "w1", "b1", "w2", "b2"):
+        for name in ("embed", "mask_embed", "step_embed", "w1", "b1", "w2", "b2"):
             value = getattr(self, name).detach()[:1]
             setattr(clone, name, nn.Parameter(value.repeat(num_models, *[1] * (value.dim() - 1))))
         return clone
 
     def forward(
-        self, ids: torch.Tensor, masked: torch.Tensor, actions: torch.Tensor, valid: torch.Tensor
+        self,
+        ids: torch.Tensor,
+        masked: torch.Tensor,
+        masked_codes: torch.Tensor,
+        actions: torch.Tensor,
+        valid: torch.Tensor,
     ) -> torch.Tensor:
         """Predictions for the real transitions.
 
         Args:
             ids: (B, L+1) dense codes of o_1 … o_{L+1}.
             masked: (K, B, L+1) bool, True where the history observation is replaced by 0.
+            masked_codes: (K, 1 or B, |Ô|) bool, the intervened set: codes masked wherever
+                they occur (the same for every episode of an arm, or drawn per episode).
             actions: (B, L).
             valid: (B, L) bool, the real (unpadded) transitions; n of them.
 
@@ -199,12 +212,21 @@ class BatchedPredictor(nn.Module):
         # The step embedding lets the predictor know *when* an outcome arrives (e.g. a reward at the
         # horizon); which observations matter stays a question about the history.
         when = self.step_embed[:, :steps].unsqueeze(1).expand(-1, batch, -1, -1)
-        x = torch.cat((seen, current, extra, when), dim=-1)[:, valid]  # padding skipped
+        # The predictor is told *which* codes the intervention masks (not whether they occurred
+        # in this episode): one network then stands for the per-intervention minimizers of Eq. 9,
+        # and "c is absent" (c was not observed) stays distinct from "c is masked".
+        intervened = torch.bmm(masked_codes.to(emb.dtype), self.mask_embed)  # (K, 1|B, d)
+        intervened = intervened.unsqueeze(2).expand(-1, batch, steps, -1)
+        x = torch.cat((seen, current, extra, when, intervened), dim=-1)[:, valid]
         hidden = torch.relu(torch.baddbmm(self.b1, x, self.w1))
         return torch.baddbmm(self.b2, hidden, self.w2)
 
     def errors_and_loss(
-        self, data: CodeData, episodes: torch.Tensor, masked: torch.Tensor
+        self,
+        data: CodeData,
+        episodes: torch.Tensor,
+        masked: torch.Tensor,
+        masked_codes: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-transition errors (K, B, L') (Eq. 9's L1 distance; 0 on padding) and the training
         loss (K,). L' is the longest episode among `episodes` (the batch is cropped to it)."""
@@ -212,7 +234,7 @@ class BatchedPredictor(nn.Module):
         steps = int(valid.sum(dim=1).max())
         valid = valid[:, :steps]
         ids, actions = data.ids[episodes, : steps + 1], data.actions[episodes, :steps]
-        out = self(ids, masked[:, :, : steps + 1], actions, valid)  # (K, n, out)
+        out = self(ids, masked[:, :, : steps + 1], masked_codes, actions, valid)  # (K, n, out)
         num_models = out.shape[0]
         if self.target == "dynamics":
             logits, reward = out[..., :-1], out[..., -1]
@@ -233,6 +255,18 @@ class BatchedPredictor(nn.Module):
         errors = flat_errors.new_zeros(num_models, *valid.shape)
         errors[:, valid] = flat_errors
         return errors, per_step.mean(dim=1)
+
+
+def _replicate_state(state: dict[str, Any], num_models: int) -> dict[str, Any]:
+    """An Adam state_dict of a 1-model BatchedPredictor repeated for `num_models` models."""
+    per_param = {
+        index: {
+            key: value.repeat(num_models, *[1] * (value.dim() - 1)) if value.dim() > 0 else value
+            for key, value in entry.items()
+        }
+        for index, entry in state["state"].items()
+    }
+    return {"state": per_param, "param_groups": state["param_groups"]}
 
 
 def _uniform(num_models: int, fan_in: int, fan_out: int) -> torch.Tensor:
@@ -271,41 +305,52 @@ class EffectEstimator:
             config,
             max_steps=self.data.actions.shape[1],
         )
-        self._fit(self.base, self._random_code_dropout, config.base_steps)
+        self._base_optimizer = self._fit(self.base, self._random_code_dropout, config.base_steps)
 
-    def _random_code_dropout(self, episodes: torch.Tensor) -> torch.Tensor:
-        """(1, B, L+1) masks that remove whole codes from each episode's history at random
-        (random interventions), at a rate drawn per episode uniformly from [0, 1].
+    def _random_code_dropout(self, episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Random interventions: whole codes removed from each episode's history at a rate
+        drawn per episode uniformly from [0, 1]. Returns the masked positions (1, B, L+1) and
+        the masked codes (1, B, |Ô|).
 
         Training the base predictor under random interventions of every size keeps it from
         leaning on any one frequent observation and makes heavily masked histories familiar,
         so every warm-started intervention adapts in a few steps instead of paying a spurious
         're-learning' cost that would look like a causal effect.
         """
-        ids = self.data.ids[episodes]
         generator = self._dropout_generator
-        salt = int(torch.randint(1 << 30, (1,), generator=generator))
         rate = torch.rand(len(episodes), 1, generator=generator) * self.config.code_dropout
-        mixed = (ids * 2654435761 + episodes.unsqueeze(1) * 40503 + salt) % 1_000_003
-        return (mixed < rate * 1_000_003).unsqueeze(0)
+        masked_codes = torch.rand(len(episodes), self.data.num_codes, generator=generator) < rate
+        masked = masked_codes.gather(1, self.data.ids[episodes])
+        return masked.unsqueeze(0), masked_codes.unsqueeze(0)
 
-    def _fit(self, model: BatchedPredictor, masks, steps: int) -> None:
+    def _fit(
+        self,
+        model: BatchedPredictor,
+        masks,
+        steps: int,
+        optimizer_state: dict[str, Any] | None = None,
+    ) -> torch.optim.Adam:
         """Adam on minibatches of training episodes; the minibatch order depends only on the
-        seed, so every model fine-tuned for the same number of steps sees the same batches."""
+        seed, so every model fine-tuned for the same number of steps sees the same batches.
+        `optimizer_state` continues an earlier fit's Adam moments."""
         optimizer = torch.optim.Adam(model.parameters(), lr=self.config.learning_rate)
+        if optimizer_state is not None:
+            optimizer.load_state_dict(optimizer_state)
         generator = torch.Generator().manual_seed(self.config.seed + 1)
         train = self.data.train
         size = min(self.config.batch_episodes, len(train))
         for _ in range(steps):
             episodes = train[torch.randint(len(train), (size,), generator=generator)]
-            _, loss = model.errors_and_loss(self.data, episodes, masks(episodes))
+            _, loss = model.errors_and_loss(self.data, episodes, *masks(episodes))
             optimizer.zero_grad()
             loss.sum().backward()
             optimizer.step()
+        return optimizer
 
     def _mask_builder(self, interventions: list[Intervention], eliminated: np.ndarray):
-        """A function of a minibatch of episodes returning (masked, tested), both (K, B, L+1):
-        positions replaced by zero vectors, and positions holding the tested observations."""
+        """A function of a minibatch of episodes returning (masked, masked_codes, tested):
+        positions replaced by zero vectors (K, B, L+1), the masked codes (K, 1, |Ô|), and the
+        positions holding the tested observations (K, B, L+1)."""
         num_codes, positions = self.data.num_codes, self.data.ids.shape[1]
         member = torch.zeros(len(interventions), num_codes, dtype=torch.bool)
         at_step = torch.ones(len(interventions), positions, dtype=torch.bool)
@@ -317,10 +362,12 @@ class EffectEstimator:
         in_eliminated = torch.zeros(num_codes, dtype=torch.bool)
         in_eliminated[torch.as_tensor(eliminated, dtype=torch.long)] = True
 
-        def build(episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        masked_codes = (member | in_eliminated).unsqueeze(1)
+
+        def build(episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
             ids = self.data.ids[episodes]
             tested = member[:, ids] & at_step.unsqueeze(1)
-            return tested | in_eliminated[ids].unsqueeze(0), tested
+            return tested | in_eliminated[ids].unsqueeze(0), masked_codes, tested
 
         return build
 
@@ -333,11 +380,19 @@ class EffectEstimator:
         control = Intervention(np.zeros(0, dtype=np.int64))
         masks = self._mask_builder([control, *interventions], eliminated)
         model = self.base.replicate(len(interventions) + 1)
-        self._fit(model, lambda ep: masks(ep)[0], self.config.finetune_steps)
+        # Fine-tuning continues the base fit's Adam moments: a fresh Adam's first steps move
+        # every weight by about the learning rate whatever its gradient, noise that would
+        # differ between arms and read as (negative or positive) effects.
+        self._fit(
+            model,
+            lambda ep: masks(ep)[:2],
+            self.config.finetune_steps,
+            _replicate_state(self._base_optimizer.state_dict(), model.embed.shape[0]),
+        )
         test = self.data.test
         with torch.no_grad():
-            masked, tested = masks(test)
-            errors, _ = model.errors_and_loss(self.data, test, masked)
+            masked, masked_codes, tested = masks(test)
+            errors, _ = model.errors_and_loss(self.data, test, masked, masked_codes)
         control_errors, errors, tested = errors[:1], errors[1:], tested[1:]
         steps = errors.shape[2]
         # transition t counts when a tested observation lies in h_{t-1} (positions < t)

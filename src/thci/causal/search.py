@@ -114,7 +114,7 @@ class _Search:
         )
 
 
-def t_hci(estimator: EffectEstimator, z: int = 4, xi: float = 0.1) -> CIResult:
+def t_hci(estimator: EffectEstimator, z: int = 4, xi: float = 0.05) -> CIResult:
     """Tree-based History Counterfactual Inference (Prop. 3) over Ô.
 
     Args:
@@ -141,7 +141,7 @@ def t_hci(estimator: EffectEstimator, z: int = 4, xi: float = 0.1) -> CIResult:
     return search.result("t-hci", started)
 
 
-def hci(estimator: EffectEstimator, xi: float = 0.1, batch_size: int = 16) -> CIResult:
+def hci(estimator: EffectEstimator, xi: float = 0.05, batch_size: int = 16) -> CIResult:
     """History Counterfactual Inference on single observations (Thm. 2): |Ô| interventions,
     run `batch_size` at a time."""
     started = time.perf_counter()
@@ -152,7 +152,7 @@ def hci(estimator: EffectEstimator, xi: float = 0.1, batch_size: int = 16) -> CI
     return search.result("hci", started)
 
 
-def fine_grained_ci(estimator: EffectEstimator, xi: float = 0.1, batch_size: int = 64) -> CIResult:
+def fine_grained_ci(estimator: EffectEstimator, xi: float = 0.05, batch_size: int = 64) -> CIResult:
     """Fine-grained CI (Prop. 1): intervene on each observation at each history step alone.
 
     An observation is causal when any of its time-specific interventions has ATE > ξ.
