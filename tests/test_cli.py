@@ -224,6 +224,16 @@ def test_t_hci_run_reports_ci_and_resumes_to_the_same_result(tmp_path):
     assert_stop_and_resume_matches(tmp_path, reference, T_HCI_FAST)
 
 
+@pytest.mark.parametrize("algo", ["a2c", "dmc"])
+def test_a2c_and_dmc_train_the_causal_memory_and_resume_to_the_same_result(tmp_path, algo):
+    args = [*T_HCI_FAST, "--algo", algo]
+    reference = train(tmp_path, "reference", "--total-steps", "4096", *args)
+    assert reference["algo"] == algo and reference["ci_rounds"] >= 1
+    assert reference["episodes"] > 0
+    # DMC carries unfinished episodes across rollouts: they must survive the checkpoint too
+    assert_stop_and_resume_matches(tmp_path, reference, args)
+
+
 def test_count_key_missing_from_info_is_refused_before_anything_is_written(tmp_path, capsys):
     run_dir = tmp_path / "run"
     code = run_cli(

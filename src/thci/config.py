@@ -17,7 +17,7 @@ from thci.errors import ThciError
 
 Method = Literal["lstm", "gru", "t-hci", "hci"]
 CAUSAL_METHODS = ("t-hci", "hci")
-Algo = Literal["ppo"]
+Algo = Literal["ppo", "a2c", "dmc"]
 
 # Fields that may differ between a run and its resumption: where it lives, the resume flag
 # itself, how long to train (extending a finished run is legitimate) and machine settings.
@@ -35,7 +35,8 @@ class TrainConfig:
     method: Method = "lstm"
     """Memory of the agent."""
     algo: Algo = "ppo"
-    """RL algorithm."""
+    """RL algorithm: ppo (clipped surrogate), a2c (one policy-gradient step per rollout) or dmc
+    (Deep Monte Carlo: Q regressed on whole-episode returns, epsilon-greedy)."""
     total_steps: int = 100_000
     """Environment steps to train for (summed over the parallel environments)."""
     seed: int = 1
@@ -59,15 +60,18 @@ class TrainConfig:
     hidden_size: int = 64
     """Width of the recurrent memory."""
 
-    # PPO
+    # Optimization (PPO, A2C, DMC)
     learning_rate: float = 1e-3
     anneal_lr: bool = False
     """Anneal the learning rate linearly to 0 over total_steps."""
     gamma: float = 0.99
     gae_lambda: float = 0.95
     update_epochs: int = 8
+    """Epochs per rollout (PPO, DMC; A2C takes one step)."""
     num_minibatches: int = 8
     """Minibatches per epoch; each holds whole episode segments, never cut sequences."""
+    dmc_epsilon: float = 0.1
+    """DMC's exploration: probability of a uniformly random action."""
     clip_coef: float = 0.2
     ent_coef: float = 0.01
     vf_coef: float = 0.5
@@ -175,6 +179,8 @@ class TrainConfig:
         for name in ("clip_coef", "ent_coef", "vf_coef", "max_grad_norm", "count_beta"):
             if getattr(self, name) < 0:
                 raise ThciError(f"--{_flag(name)} must be >= 0, got {getattr(self, name)}")
+        if not 0 <= self.dmc_epsilon <= 1:
+            raise ThciError(f"--dmc-epsilon must be in [0, 1], got {self.dmc_epsilon}")
         if self.ci_z < 2:
             raise ThciError(f"--ci-z must be at least 2, got {self.ci_z}")
         if self.ci_xi < 0:

@@ -23,6 +23,7 @@ from thci.causal.predictor import EffectEstimator, PredictorConfig
 from thci.causal.replay import PoolEpisode, ReplayPool, pad_episodes
 from thci.causal.search import CIResult, hci, t_hci
 from thci.config import TrainConfig
+from thci.rl.episodes import EpisodeAssembler
 from thci.rl.rollout import Rollout
 
 
@@ -64,7 +65,7 @@ class CausalInferenceLoop:
         self.num_actions, self.gate = num_actions, gate
         self.pool = ReplayPool(config.ci_pool_episodes)
         self.discretizer: Discretizer | None = None
-        self.pending: list[dict[str, np.ndarray] | None] = [None] * num_envs
+        self.assembler = EpisodeAssembler(num_envs)
         self.rounds: list[CIRound] = []
         self.intervention_log: list[dict[str, Any]] = []
         self.last_result: CIResult | None = None
@@ -95,29 +96,16 @@ class CausalInferenceLoop:
         labelled = rollout.causal is not None and rollout.final_causal is not None
         if labelled:
             steps["causal"] = rollout.causal.numpy()
-        for n in range(N):  # loops over environments and finished episodes, not steps
-            begin = 0
-            for end in np.flatnonzero(dones[:, n]):
-                piece = self._take(n, {k: v[begin : end + 1, n] for k, v in steps.items()})
-                episode = PoolEpisode(
-                    codes=np.append(piece["codes"], final_codes[end, n]),
-                    actions=piece["actions"],
-                    rewards=piece["rewards"].astype(np.float32),
-                    causal=np.append(piece["causal"], rollout.final_causal[end, n].item())
-                    if labelled
-                    else None,
-                )
-                self.pool.add(episode, np.concatenate([piece["obs"], final_obs[end, n][None]]))
-                begin = end + 1
-            if begin < T:
-                self.pending[n] = self._take(n, {k: v[begin:, n] for k, v in steps.items()})
-
-    def _take(self, env: int, piece: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """`piece` prefixed by the unfinished part of env's episode from earlier rollouts."""
-        before, self.pending[env] = self.pending[env], None
-        if before is None:
-            return piece
-        return {k: np.concatenate([before[k], v]) for k, v in piece.items()}
+        for n, end, piece in self.assembler.add(steps, dones):
+            episode = PoolEpisode(
+                codes=np.append(piece["codes"], final_codes[end, n]),
+                actions=piece["actions"],
+                rewards=piece["rewards"].astype(np.float32),
+                causal=np.append(piece["causal"], rollout.final_causal[end, n].item())
+                if labelled
+                else None,
+            )
+            self.pool.add(episode, np.concatenate([piece["obs"], final_obs[end, n][None]]))
 
     # ------------------------------------------------------------------ the CI loop's side
     def due(self, global_step: int) -> bool:
@@ -227,10 +215,7 @@ class CausalInferenceLoop:
                 "causal": [torch.as_tensor(e.causal) for e in episodes] if labelled else None,
             },
             "observations": {int(c): torch.as_tensor(o) for c, o in self.pool.observations.items()},
-            "pending": [
-                None if p is None else {k: torch.as_tensor(v) for k, v in p.items()}
-                for p in self.pending
-            ],
+            "pending": self.assembler.state_dict(),
             "discretizer": None if self.discretizer is None else self.discretizer.state_dict(),
             "rounds": [asdict(r) for r in self.rounds],
             "intervention_log": self.intervention_log,
@@ -262,9 +247,7 @@ class CausalInferenceLoop:
                     )
                 )
         self.pool.observations = {c: o.numpy() for c, o in state["observations"].items()}
-        self.pending = [
-            None if p is None else {k: v.numpy() for k, v in p.items()} for p in state["pending"]
-        ]
+        self.assembler.load_state_dict(state["pending"])
         if state["discretizer"] is not None:
             self.discretizer = discretizer_from_state(state["discretizer"])
         self.rounds = [CIRound(**r) for r in state["rounds"]]

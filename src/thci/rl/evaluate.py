@@ -49,6 +49,8 @@ def evaluate(
             gamma=config.gamma,
             success_return=config.success_return,
             greedy=greedy,
+            # the behaviour the agent trained with: DMC acts epsilon-greedily on its Q-values
+            epsilon=config.dmc_epsilon if config.algo == "dmc" else None,
         )
         collector.reset(seed)
         quota = np.full(num_envs, episodes // num_envs) + (

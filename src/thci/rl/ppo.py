@@ -1,8 +1,9 @@
-"""Recurrent PPO (Schulman et al. 2017) on episode segments, with GAE.
+"""Recurrent PPO (Schulman et al. 2017) and A2C (Mnih et al. 2016) on episode segments, with GAE.
 
 Each update cuts the rollout into whole episode segments (:mod:`thci.rl.sequences`), runs the
-agent once per minibatch of segments, and minimizes the clipped surrogate, value and entropy
-losses over the real (unpadded) steps.
+agent once per minibatch of segments, and minimizes a policy loss plus the value and entropy
+losses over the real (unpadded) steps. PPO: the clipped surrogate, several epochs of
+minibatches. A2C: the plain policy gradient -A·log pi, one step on the whole rollout.
 """
 
 from __future__ import annotations
@@ -51,6 +52,22 @@ class PPO:
 
     def __init__(self, config: TrainConfig) -> None:
         self.config = config
+        self.epochs, self.num_minibatches = config.update_epochs, config.num_minibatches
+
+    def policy_loss(
+        self, logprob: torch.Tensor, old_logprob: torch.Tensor, adv: torch.Tensor
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The clipped surrogate over n steps (all (n,)), and statistics to log."""
+        clip = self.config.clip_coef
+        log_ratio = logprob - old_logprob
+        ratio = log_ratio.exp()
+        loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - clip, 1 + clip)).mean()
+        with torch.no_grad():
+            stats = {
+                "approx_kl": ((ratio - 1) - log_ratio).mean(),
+                "clipfrac": ((ratio - 1).abs() > clip).float().mean(),
+            }
+        return loss, stats
 
     def update(
         self, agent: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Rollout
@@ -67,8 +84,8 @@ class PPO:
         )
         segments = cut_into_segments(rollout.episode_starts)
         stats: dict[str, list[float]] = {}
-        for _ in range(cfg.update_epochs):
-            for which in segments.minibatches(cfg.num_minibatches):
+        for _ in range(self.epochs):
+            for which in segments.minibatches(self.num_minibatches):
                 batch = segments.select(which)
                 state = torch.where(
                     batch.continues.unsqueeze(1),
@@ -79,22 +96,19 @@ class PPO:
                 mask = batch.valid
                 dist = torch.distributions.Categorical(logits=logits[mask])
                 logprob = dist.log_prob(batch.gather(rollout.actions)[mask])
-                log_ratio = logprob - batch.gather(rollout.logprobs)[mask]
-                ratio = log_ratio.exp()
-
                 adv = batch.gather(advantages)[mask]
                 if cfg.norm_adv and adv.numel() > 1:
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                policy_loss = torch.max(
-                    -adv * ratio, -adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)
-                ).mean()
+                policy_loss, policy_stats = self.policy_loss(
+                    logprob, batch.gather(rollout.logprobs)[mask], adv
+                )
                 value_loss = 0.5 * (values[mask] - batch.gather(returns)[mask]).pow(2).mean()
                 entropy = dist.entropy().mean()
                 loss = policy_loss + cfg.vf_coef * value_loss - cfg.ent_coef * entropy
                 if not torch.isfinite(loss):
                     raise ThciError(
-                        "PPO loss became NaN/inf: lower --learning-rate or --max-grad-norm, "
-                        "or check the environment's rewards and observations for NaN"
+                        f"{type(self).__name__} loss became NaN/inf: lower --learning-rate or "
+                        "--max-grad-norm, or check the environment's rewards and observations"
                     )
 
                 optimizer.zero_grad()
@@ -102,15 +116,11 @@ class PPO:
                 nn.utils.clip_grad_norm_(agent.parameters(), cfg.max_grad_norm)
                 optimizer.step()
 
-                with torch.no_grad():
-                    approx_kl = ((ratio - 1) - log_ratio).mean()
-                    clip_fraction = ((ratio - 1).abs() > cfg.clip_coef).float().mean()
                 for name, value in (
                     ("policy_loss", policy_loss),
                     ("value_loss", value_loss),
                     ("entropy", entropy),
-                    ("approx_kl", approx_kl),
-                    ("clipfrac", clip_fraction),
+                    *policy_stats.items(),
                 ):
                     stats.setdefault(name, []).append(value.item())
         result = {name: sum(v) / len(v) for name, v in stats.items()}
@@ -119,3 +129,24 @@ class PPO:
             1 - (returns - rollout.values).var() / variance if variance > 0 else float("nan")
         )
         return result
+
+    def state_dict(self) -> dict:
+        """Nothing carries over between rollouts (DMC's episodes do)."""
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
+
+class A2C(PPO):
+    """Synchronous advantage actor-critic: one gradient step per rollout on all of it."""
+
+    def __init__(self, config: TrainConfig) -> None:
+        super().__init__(config)
+        self.epochs, self.num_minibatches = 1, 1
+
+    def policy_loss(
+        self, logprob: torch.Tensor, old_logprob: torch.Tensor, adv: torch.Tensor
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """-A · log pi(a|h), averaged over the n steps."""
+        return -(adv * logprob).mean(), {}

@@ -79,6 +79,10 @@ class RolloutCollector:
         success_return: for envs without info["success"], the return that counts as success.
         greedy: act with the most likely action instead of sampling (for evaluation).
         info_keys: info entries to record for every reached observation (e.g. "agent_pos").
+        epsilon: act epsilon-greedily on the policy head's outputs (DMC's Q-values) instead of
+            sampling from their softmax.
+        bootstrap_truncation: credit gamma * V(final observation) to truncated episodes (off
+            for DMC, whose targets are plain Monte-Carlo returns).
     """
 
     def __init__(
@@ -90,11 +94,14 @@ class RolloutCollector:
         success_return: float | None = None,
         greedy: bool = False,
         info_keys: tuple[str, ...] = (),
+        epsilon: float | None = None,
+        bootstrap_truncation: bool = True,
     ) -> None:
         self.envs, self.agent = envs, agent
         self.num_envs, self.num_steps, self.gamma = envs.num_envs, num_steps, gamma
         self.success_return, self.greedy = success_return, greedy
         self.info_keys = info_keys
+        self.epsilon, self.bootstrap_truncation = epsilon, bootstrap_truncation
         self.obs = torch.zeros(0)
         self.causal: torch.Tensor | None = None
         self.episode_start = torch.ones(self.num_envs, dtype=torch.bool)
@@ -137,6 +144,10 @@ class RolloutCollector:
             log_probs = torch.log_softmax(logits, dim=-1)
             if self.greedy:
                 action = logits.argmax(dim=-1)
+            elif self.epsilon is not None:
+                explore = torch.rand(N) < self.epsilon
+                uniform = torch.randint(logits.shape[-1], (N,))
+                action = torch.where(explore, uniform, logits.argmax(dim=-1))
             else:
                 action = torch.multinomial(log_probs.exp(), 1, replacement=True).squeeze(1)
             next_obs, reward, terminated, truncated, infos = self.envs.step(action.numpy())
@@ -167,7 +178,7 @@ class RolloutCollector:
 
             # A truncated episode did not end in the MDP: credit the value of where it stopped.
             cut = np.flatnonzero(truncated & ~terminated)
-            if len(cut):
+            if len(cut) and self.bootstrap_truncation:
                 final = torch.as_tensor(final_observations(infos, cut), dtype=torch.float32)
                 _, final_value, _ = self.agent.step(
                     final, state[cut], torch.zeros(len(cut), dtype=torch.bool)

@@ -34,8 +34,9 @@ from thci.experiments.run_dir import (
 )
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
+from thci.rl.dmc import DMC
 from thci.rl.exploration import make_exploration_bonus
-from thci.rl.ppo import PPO
+from thci.rl.ppo import A2C, PPO
 from thci.rl.rollout import RolloutCollector
 from thci.rl.tracking import SolveTracker
 
@@ -60,6 +61,13 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
         config.encoder_size,
         gate=Gate(observation_size) if causal else None,
     )
+
+
+def make_algorithm(config: TrainConfig) -> PPO | DMC:
+    """The update rule named by ``--algo``."""
+    if config.algo == "dmc":
+        return DMC(config, config.num_envs)
+    return A2C(config) if config.algo == "a2c" else PPO(config)
 
 
 def default_run_dir(config: TrainConfig) -> Path:
@@ -106,11 +114,19 @@ def _train(
     agent = build_agent(config, envs)
     optimizer = torch.optim.Adam(agent.policy_parameters(), lr=config.learning_rate, eps=1e-5)
     counted = (config.count_key,) if config.exploration != "none" and config.count_key else ()
+    dmc = config.algo == "dmc"
     collector = RolloutCollector(
-        envs, agent, config.num_steps, config.gamma, config.success_return, info_keys=counted
+        envs,
+        agent,
+        config.num_steps,
+        config.gamma,
+        config.success_return,
+        info_keys=counted,
+        epsilon=config.dmc_epsilon if dmc else None,
+        bootstrap_truncation=not dmc,
     )
     tracker = SolveTracker(config.solve_window, config.solve_threshold)
-    algorithm = PPO(config)
+    algorithm = make_algorithm(config)
     bonus = make_exploration_bonus(
         config.exploration,
         envs.single_observation_space,
@@ -147,6 +163,7 @@ def _train(
         update, global_step = checkpoint["update"], checkpoint["global_step"]
         wall_clock_before = checkpoint["wall_clock_s"]
         tracker.load_state_dict(checkpoint["tracker"])
+        algorithm.load_state_dict(checkpoint["algorithm"])
         if ci is not None:
             ci.load_state_dict(checkpoint["ci"])
         if bonus is not None:
@@ -184,6 +201,7 @@ def _train(
                 "optimizer": optimizer.state_dict(),
                 "collector": collector.state_dict(),
                 "tracker": tracker.state_dict(),
+                "algorithm": algorithm.state_dict(),
                 "ci": None if ci is None else ci.state_dict(),
                 "exploration": None if bonus is None else bonus.state_dict(),
                 "torch_rng": torch.get_rng_state(),

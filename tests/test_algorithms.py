@@ -1,0 +1,119 @@
+"""A2C and DMC against hand computation; whole episodes across rollouts; epsilon-greedy."""
+
+import numpy as np
+import pytest
+import torch
+
+from thci.config import TrainConfig
+from thci.memory import make_memory
+from thci.rl.agent import ActorCritic
+from thci.rl.dmc import DMC, monte_carlo_returns
+from thci.rl.episodes import EpisodeAssembler
+from thci.rl.ppo import A2C
+from thci.rl.rollout import Rollout
+
+
+def test_monte_carlo_returns_match_hand_computation():
+    rewards = torch.tensor([[1.0, 0.0, 2.0], [0.0, 5.0, 9.0]])
+    valid = torch.tensor([[True, True, True], [True, True, False]])  # 9.0 is padding
+    got = monte_carlo_returns(rewards, valid, gamma=0.5)
+    expected = torch.tensor([[1 + 0.5 * (0 + 0.5 * 2), 0 + 0.5 * 2, 2], [2.5, 5, 0]])
+    assert torch.allclose(got, expected)
+
+
+def test_assembler_joins_episodes_across_rollouts_and_restores():
+    assembler = EpisodeAssembler(num_envs=2)
+    steps = {"x": np.arange(6).reshape(3, 2)}  # (T=3, N=2): env 0 gets 0, 2, 4; env 1: 1, 3, 5
+    dones = np.array([[False, True], [False, False], [False, False]])
+    finished = assembler.add(steps, dones)
+    assert [(n, t, p["x"].tolist()) for n, t, p in finished] == [(1, 0, [1])]
+    restored = EpisodeAssembler(num_envs=2)
+    restored.load_state_dict(assembler.state_dict())
+    dones = np.array([[True, False], [False, False], [False, True]])
+    finished = restored.add({"x": 10 + np.arange(6).reshape(3, 2)}, dones)
+    assert [(n, t, p["x"].tolist()) for n, t, p in finished] == [
+        (0, 0, [0, 2, 4, 10]),  # began in the first rollout
+        (1, 2, [3, 5, 11, 13, 15]),
+    ]
+
+
+def _rollout(obs, actions, rewards, dones) -> Rollout:
+    """A (T, N) rollout with the fields the updates read; the rest zeros."""
+    T, N = actions.shape
+    zeros = torch.zeros(T, N)
+    starts = torch.zeros(T, N, dtype=torch.bool)
+    starts[0] = True
+    starts[1:] = dones[:-1]
+    return Rollout(
+        obs=obs,
+        actions=actions,
+        logprobs=zeros,
+        values=zeros,
+        rewards=rewards,
+        dones=dones,
+        episode_starts=starts,
+        initial_state=torch.zeros(N, 2 * 8),
+        last_value=torch.zeros(N),
+        env_rewards=rewards,
+        final_obs=torch.zeros_like(obs),
+        causal=None,
+        final_causal=None,
+        reached_info={},
+    )
+
+
+def _agent() -> ActorCritic:
+    torch.manual_seed(0)
+    return ActorCritic(3, 2, make_memory("lstm", 4, 8), 4)
+
+
+def test_dmc_regresses_q_of_taken_actions_on_whole_episode_returns():
+    agent = _agent()
+    config = TrainConfig(gamma=0.5, update_epochs=1, num_minibatches=1, max_grad_norm=1e9)
+    dmc = DMC(config, num_envs=1)
+    obs = torch.randn(4, 1, 3)
+    actions = torch.tensor([[1], [0], [1], [1]])
+    rewards = torch.tensor([[0.0], [1.0], [3.0], [7.0]])
+    # first rollout: the episode (steps 0-1 here, 2 of the next rollout) is unfinished
+    first = _rollout(obs[:2], actions[:2], rewards[:2], torch.zeros(2, 1, dtype=torch.bool))
+    optimizer = torch.optim.SGD(agent.parameters(), lr=0.0)  # lr 0: the loss is all we read
+    assert np.isnan(dmc.update(agent, optimizer, first)["q_loss"])
+    dones = torch.tensor([[True], [False]])  # ends with step 0 of the second rollout
+    second = _rollout(obs[2:], actions[2:], rewards[2:], dones)
+    losses = dmc.update(agent, optimizer, second)
+    # by hand: Q over the whole episode (obs 0..2) from a zero state, G = [0+.5*1+.25*3, 1+.5*3, 3]
+    q, _, _ = agent(obs[:3, 0].unsqueeze(0), agent.initial_state(1))
+    taken = q[0, torch.arange(3), actions[:3, 0]]
+    returns = torch.tensor([1.25, 2.5, 3.0])
+    assert losses["q_loss"] == pytest.approx(0.5 * (taken - returns).pow(2).mean().item(), rel=1e-5)
+
+
+def test_a2c_takes_one_policy_gradient_step_on_the_whole_rollout():
+    agent = _agent()
+    config = TrainConfig(gamma=0.9, gae_lambda=1.0, norm_adv=False, ent_coef=0.0, vf_coef=0.0)
+    a2c = A2C(config)
+    obs = torch.randn(3, 2, 3)
+    actions = torch.tensor([[0, 1], [1, 1], [0, 0]])
+    rewards = torch.tensor([[0.0, 1.0], [0.0, 0.0], [2.0, 0.0]])
+    dones = torch.tensor([[False, True], [False, False], [True, False]])
+    rollout = _rollout(obs, actions, rewards, dones)
+    optimizer = torch.optim.SGD(agent.parameters(), lr=0.0)
+    steps = []
+    optimizer.register_step_post_hook(lambda *_: steps.append(1))
+    losses = a2c.update(agent, optimizer, rollout)
+    assert len(steps) == 1
+    # values are 0 in the rollout, so the advantages are the discounted returns (GAE, lambda 1)
+    adv = torch.tensor([[0.81 * 2, 1.0], [0.9 * 2, 0.0], [2.0, 0.0]])
+    logits_0, _, _ = agent(obs[:, 0].unsqueeze(0), agent.initial_state(1))
+    logits_1a, _, _ = agent(obs[:1, 1].unsqueeze(0), agent.initial_state(1))
+    logits_1b, _, _ = agent(obs[1:, 1].unsqueeze(0), agent.initial_state(1))
+    logp = torch.cat(
+        (
+            logits_0[0].log_softmax(-1)[torch.arange(3), actions[:, 0]],
+            logits_1a[0].log_softmax(-1)[0, actions[0, 1]].view(1),
+            logits_1b[0].log_softmax(-1)[torch.arange(2), actions[1:, 1]],
+        )
+    )
+    flat_adv = torch.cat((adv[:, 0], adv[:1, 1], adv[1:, 1]))
+    assert losses["policy_loss"] == pytest.approx(-(flat_adv * logp).mean().item(), rel=1e-5)
+    assert len(losses) >= 3 and "clipfrac" not in losses  # no PPO statistics
