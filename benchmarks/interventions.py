@@ -128,8 +128,8 @@ def plot(records: list[dict], path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[100, 1000, 10_000, 100_000])
-    parser.add_argument("--hci-limit", type=int, default=1000, help="largest |O| for HCI")
-    parser.add_argument("--fine-limit", type=int, default=100, help="largest |O| for fine CI")
+    parser.add_argument("--hci-limit", type=int, default=10_000, help="largest |O| for HCI")
+    parser.add_argument("--fine-limit", type=int, default=1000, help="largest |O| for fine CI")
     parser.add_argument("--z", type=int, default=4)
     args = parser.parse_args()
     torch.set_num_threads(1)

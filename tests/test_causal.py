@@ -8,7 +8,7 @@ import torch
 
 from thci.causal.gate import Gate
 from thci.causal.predictor import BatchedPredictor, EffectEstimator, PredictorConfig
-from thci.causal.replay import pad_episodes
+from thci.causal.replay import PoolEpisode, ReplayPool, pad_episodes
 from thci.causal.search import fine_grained_ci, hci, t_hci
 from thci.causal.synthetic import generate_planted_episodes
 from thci.causal.taie import taie_of_rollout
@@ -144,3 +144,20 @@ def test_fine_grained_ci_tests_every_observation_at_every_history_step():
     history_steps = estimator.data.actions.shape[1] - 1
     assert len(pairs) == len(result.interventions) == len(result.observed) * history_steps
     assert set(data.causal_codes.tolist()) <= set(result.causal.tolist())
+
+
+def test_pool_counts_rewarded_episodes_as_they_enter_and_drop_out():
+    def episode(reward: float) -> PoolEpisode:
+        return PoolEpisode(
+            codes=np.zeros(3, dtype=np.int64),
+            actions=np.zeros(2, dtype=np.int64),
+            rewards=np.array([0.0, reward], dtype=np.float32),
+            causal=None,
+        )
+
+    pool = ReplayPool(capacity=3)
+    for reward in (1.0, 0.0, -2.0):
+        pool.add(episode(reward))
+    assert pool.num_rewarded == 2
+    pool.add(episode(0.0))  # the rewarded first episode drops out
+    assert pool.num_rewarded == 1

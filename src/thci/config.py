@@ -91,6 +91,10 @@ class TrainConfig:
     """Env steps between CI rounds (the first runs once ci_min_episodes episodes are pooled)."""
     ci_min_episodes: int = 400
     """Episodes the replay pool must hold before the first CI round."""
+    ci_min_rewarded_episodes: int = 50
+    """...of which this many with a non-zero reward: before the agent has reached any outcome
+    worth predicting, every observation looks like it has no effect, and a round would eliminate
+    the very causes (seen in Maze L3, where random play is rewarded in 0.5% of episodes)."""
     ci_max_rounds: int = 8
     """At most this many CI rounds (rounds also stop once two in a row agree)."""
     ci_pool_episodes: int = 2000
@@ -153,6 +157,10 @@ class TrainConfig:
         for name, value in positive_ints.items():
             if value <= 0:
                 raise ThciError(f"--{_flag(name)} must be a positive integer, got {value}")
+        if self.ci_min_rewarded_episodes < 0:
+            raise ThciError(
+                f"--ci-min-rewarded-episodes must be >= 0, got {self.ci_min_rewarded_episodes}"
+            )
         if self.ci_finetune_steps < 0:
             raise ThciError(f"--ci-finetune-steps must be >= 0, got {self.ci_finetune_steps}")
         floats = {

@@ -113,6 +113,7 @@ class CausalInferenceLoop:
         return (
             global_step >= self.next_round_step
             and len(self.pool) >= self.config.ci_min_episodes
+            and self.pool.num_rewarded >= self.config.ci_min_rewarded_episodes
             and len(self.rounds) < self.config.ci_max_rounds
             and self.stable_rounds < 2
         )
@@ -238,7 +239,7 @@ class CausalInferenceLoop:
         pool = state["pool"]
         if pool is not None:
             for i, length in enumerate(pool["lengths"].tolist()):
-                self.pool.episodes.append(
+                self.pool.add(
                     PoolEpisode(
                         codes=pool["codes"][i, : length + 1].numpy(),
                         actions=pool["actions"][i, :length].numpy(),

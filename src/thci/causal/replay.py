@@ -83,12 +83,17 @@ class ReplayPool:
         self.capacity = capacity
         self.episodes: deque[PoolEpisode] = deque(maxlen=capacity)
         self.observations: dict[int, np.ndarray] = {}
+        self.num_rewarded = 0
+        """Episodes in the pool with a non-zero reward somewhere."""
 
     def __len__(self) -> int:
         return len(self.episodes)
 
     def add(self, episode: PoolEpisode, observations: np.ndarray | None = None) -> None:
         """Append an episode; `observations` (L + 1, D) supplies representatives of new codes."""
+        if len(self.episodes) == self.capacity:  # the oldest episode is about to drop out
+            self.num_rewarded -= bool(np.any(self.episodes[0].rewards != 0))
+        self.num_rewarded += bool(np.any(episode.rewards != 0))
         self.episodes.append(episode)
         if observations is not None:
             # Only the episode's distinct codes are looked up, not every step.
