@@ -8,6 +8,11 @@
 
 ``thci/KeyDoorTV-v0`` is the paper's Fig. 1 key-to-door example (:class:`KeyDoorTVEnv`); it
 ends itself after 2 steps.
+
+``thci/BabyAI-L1-v0`` ... ``thci/BabyAI-L4-v0`` are the paper's BabyAI levels 1-4
+(:mod:`thci.envs.babyai`, built on minigrid), with flat uint8 observations. They are
+registered by entry-point string so that ``import thci.envs`` does not import minigrid (which
+registers ~180 ids of its own); ``max_episode_steps`` equals the level's own ``max_steps``.
 """
 
 import gymnasium as gym
@@ -22,6 +27,7 @@ from thci.envs.paper_maze import (
 )
 
 __all__ = [
+    "BABYAI_IDS",
     "KEY_DOOR_TV_ID",
     "PAPER_MAZE_IDS",
     "KeyDoorTVEnv",
@@ -58,3 +64,25 @@ def _register_key_door_tv() -> None:
 
 
 _register_key_door_tv()
+
+
+BABYAI_IDS: tuple[str, ...] = tuple(f"thci/BabyAI-L{k}-v0" for k in (1, 2, 3, 4))
+# Episode limits, the MAX_STEPS of the level classes in thci.envs.babyai (a test checks that
+# they agree); repeated here so that registering does not import minigrid.
+_BABYAI_MAX_STEPS = {1: 80, 2: 120, 3: 160, 4: 250}
+
+
+def _register_babyai() -> None:
+    for level, env_id in zip(_BABYAI_MAX_STEPS, BABYAI_IDS, strict=True):
+        if env_id in gym.registry:  # same guard as above
+            continue
+        max_steps = _BABYAI_MAX_STEPS[level]
+        gym.register(
+            id=env_id,
+            entry_point="thci.envs.babyai:make_babyai_env",
+            kwargs={"level": level, "max_steps": max_steps},
+            max_episode_steps=max_steps,
+        )
+
+
+_register_babyai()
