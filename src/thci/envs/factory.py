@@ -7,21 +7,26 @@ already the next episode's first one and the last one is in ``infos["final_obs"]
 
 A user's own environment needs no change to the library: register it with gymnasium and pass
 its id, or pass ``"my_package.my_module:MyEnv-v0"`` and gymnasium imports the module first.
+``Dict`` observations (e.g. minigrid's ``{"image", "direction", "mission"}``) keep their
+``Box`` / ``Discrete`` / ``MultiDiscrete`` entries, flattened into one vector; other entries
+(the mission ``Text``) are ignored, and a note names them.
 """
 
 from __future__ import annotations
 
 import difflib
 import importlib
+import sys
 
 import gymnasium as gym
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, SyncVectorEnv, VectorEnv
-from gymnasium.wrappers import FlattenObservation
+from gymnasium.wrappers import FilterObservation, FlattenObservation
 
 from thci.errors import ThciError
 
 SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete)
+_NOTED: set[str] = set()  # env ids whose ignored Dict entries were already reported
 
 
 def resolve_env_spec(env_id: str) -> gym.envs.registration.EnvSpec:
@@ -39,12 +44,26 @@ def resolve_env_spec(env_id: str) -> gym.envs.registration.EnvSpec:
     raise ThciError(f"unknown environment id {env_id!r}: {hint}")
 
 
+def usable_keys(space: spaces.Dict) -> tuple[list[str], list[str]]:
+    """The entries of a Dict observation space thci uses, and those it ignores."""
+    used = [k for k, sub in space.spaces.items() if isinstance(sub, SUPPORTED_OBSERVATION_SPACES)]
+    return used, [k for k in space.spaces if k not in used]
+
+
 def check_spaces(observation_space: spaces.Space, action_space: spaces.Space, env_id: str) -> None:
     """ThciError unless the spaces are ones the agents handle."""
     if not isinstance(action_space, spaces.Discrete):
         raise ThciError(
             f"{env_id} has action space {action_space}; thci agents need a Discrete action space"
         )
+    if isinstance(observation_space, spaces.Dict):
+        if not usable_keys(observation_space)[0]:
+            names = ", ".join(s.__name__ for s in SUPPORTED_OBSERVATION_SPACES)
+            raise ThciError(
+                f"{env_id} has observation space {observation_space} with no {names} entry "
+                "to learn from (wrap the environment to produce one)"
+            )
+        return
     if not isinstance(observation_space, SUPPORTED_OBSERVATION_SPACES):
         names = ", ".join(s.__name__ for s in SUPPORTED_OBSERVATION_SPACES)
         raise ThciError(
@@ -129,6 +148,16 @@ def _flat_env_factory(env_id: str, env_kwargs: dict[str, object]):
     def make() -> gym.Env:
         env = gym.make(env_id, **env_kwargs)
         check_spaces(env.observation_space, env.action_space, env_id)
+        if isinstance(env.observation_space, spaces.Dict):
+            used, ignored = usable_keys(env.observation_space)
+            if ignored and env_id not in _NOTED:  # said once per environment id
+                _NOTED.add(env_id)
+                print(
+                    f"note: {env_id}: observation entries {ignored} are ignored; thci uses the "
+                    f"Box, Discrete and MultiDiscrete entries {used}",
+                    file=sys.stderr,
+                )
+            env = FilterObservation(env, used)
         return FlattenObservation(env)
 
     return make
