@@ -38,7 +38,10 @@ distribution and the observed outcome, 2·(1 − p(observed)) / 2 = 1 − p(obse
     ATE(S) = mean of D_e(S) over held-out episodes e whose history contains S somewhere
 
 i.e. the extra prediction error per episode (Eq. 4 sums over t) that the intervention causes
-where it applies (Prop. 2 integrates over histories that contain O^i). The control arm masks
+where it applies (Prop. 2 integrates over histories that contain O^i). The two parts of the
+dynamics error are measured separately and the larger counts: the next-observation part as
+is, the reward part divided by the mean reward per episode (at least REWARD_SCALE_FLOOR), so
+that what decides a sparse reward is not diluted below ξ by the many unrewarded episodes. The control arm masks
 O^w only, so the ATE is the effect of S *given* the eliminated set, which is what the
 sequential elimination of the search needs; the environment's own noise, and whatever masking
 O^w costs, hit the control and the intervened arm alike and cancel.
@@ -61,6 +64,8 @@ from torch import nn
 from thci.causal.replay import PoolArrays
 
 Target = Literal["dynamics", "inverse"]
+REWARD_SCALE_FLOOR = 0.1
+"""Smallest reward per episode (in units of max |r|) the reward part of an ATE is divided by."""
 
 
 @dataclass(frozen=True)
@@ -228,8 +233,9 @@ class BatchedPredictor(nn.Module):
         masked: torch.Tensor,
         masked_codes: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-transition errors (K, B, L') (Eq. 9's L1 distance; 0 on padding) and the training
-        loss (K,). L' is the longest episode among `episodes` (the batch is cropped to it)."""
+        """Per-transition errors (C, K, B, L') (Eq. 9's L1 distance; 0 on padding) and the
+        training loss (K,). L' is the longest episode among `episodes` (the batch is cropped to
+        it). C = 2 error components for dynamics (next observation, reward), 1 for inverse."""
         valid = data.valid[episodes]
         steps = int(valid.sum(dim=1).max())
         valid = valid[:, :steps]
@@ -243,17 +249,17 @@ class BatchedPredictor(nn.Module):
             nll = nn.functional.cross_entropy(
                 logits.flatten(0, 1), target.flatten(), reduction="none"
             ).view_as(reward)
-            flat_errors = (1 - torch.exp(-nll)) + (reward - true_reward).abs()
+            flat_errors = torch.stack((1 - torch.exp(-nll), (reward - true_reward).abs()))
             per_step = nll + data.reward_weight * (reward - true_reward).pow(2)
         else:
             target = actions[valid].expand(num_models, -1)
             nll = nn.functional.cross_entropy(
                 out.flatten(0, 1), target.flatten(), reduction="none"
             ).view(num_models, -1)
-            flat_errors = 1 - torch.exp(-nll)
+            flat_errors = (1 - torch.exp(-nll)).unsqueeze(0)
             per_step = nll
-        errors = flat_errors.new_zeros(num_models, *valid.shape)
-        errors[:, valid] = flat_errors
+        errors = flat_errors.new_zeros(len(flat_errors), num_models, *valid.shape)
+        errors[:, :, valid] = flat_errors
         return errors, per_step.mean(dim=1)
 
 
@@ -393,12 +399,20 @@ class EffectEstimator:
         with torch.no_grad():
             masked, masked_codes, tested = masks(test)
             errors, _ = model.errors_and_loss(self.data, test, masked, masked_codes)
-        control_errors, errors, tested = errors[:1], errors[1:], tested[1:]
-        steps = errors.shape[2]
+        control_errors, errors, tested = errors[:, :1], errors[:, 1:], tested[1:]
+        steps = errors.shape[-1]
         # transition t counts when a tested observation lies in h_{t-1} (positions < t)
         seen = torch.cummax(tested[:, :, :steps].int(), dim=2).values.bool()
         applies = torch.cat((torch.zeros_like(seen[:, :, :1]), seen[:, :, :-1]), dim=2)
         applies &= self.data.valid[test, :steps].unsqueeze(0)
-        extra = ((errors - control_errors) * applies).sum(dim=2)  # (K, E_test)
+        extra = ((errors - control_errors) * applies).sum(dim=-1)  # (C, K, E_test)
         episodes_hit = applies.any(dim=2).sum(dim=1)
-        return (extra.sum(dim=1) / episodes_hit.clamp(min=1)).numpy()
+        per_component = extra.sum(dim=-1) / episodes_hit.clamp(min=1)  # (C, K)
+        if self.config.target == "dynamics":
+            # The reward part is measured against how much reward there is to predict: a sparse
+            # reward (2% of maze episodes early on) would otherwise dilute the effect of what
+            # decides it below any threshold, next to observations that matter every step. The
+            # floor keeps a nearly reward-free pool from amplifying noise without bound.
+            scale = self.data.rewards[test].abs().sum(dim=1).mean()
+            per_component[1] /= max(float(scale), REWARD_SCALE_FLOOR)
+        return per_component.max(dim=0).values.numpy()
