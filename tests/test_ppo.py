@@ -56,3 +56,15 @@ def test_episode_start_zeroes_state():
     kept_logits, _, _ = agent.step(obs, busy, torch.zeros(2, dtype=torch.bool))
     assert torch.allclose(fresh_logits, reset_logits)
     assert not torch.allclose(fresh_logits, kept_logits)
+
+
+def test_memoryless_policy_ignores_the_past():
+    torch.manual_seed(0)
+    agent = ActorCritic(4, 3, make_memory("mlp", 8, 8), 8)
+    obs = torch.randn(2, 5, 4)
+    other_past = obs.clone()
+    other_past[:, :4] = torch.randn(2, 4, 4)
+    logits, _, _ = agent(obs, agent.initial_state(2))
+    other, _, _ = agent(other_past, agent.initial_state(2))
+    assert torch.allclose(logits[:, 4], other[:, 4])
+    assert not torch.allclose(logits[:, 3], other[:, 3])  # the present still matters

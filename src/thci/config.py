@@ -15,7 +15,7 @@ from typing import Any, Literal
 
 from thci.errors import ThciError
 
-Method = Literal["lstm", "gru", "t-hci", "hci"]
+Method = Literal["lstm", "gru", "mlp", "t-hci", "hci"]
 CAUSAL_METHODS = ("t-hci", "hci")
 Algo = Literal["ppo", "a2c", "dmc"]
 

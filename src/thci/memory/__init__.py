@@ -6,12 +6,14 @@ from collections.abc import Callable
 
 from thci.errors import ThciError
 from thci.memory.base import Memory
+from thci.memory.memoryless import NoMemory
 from thci.memory.recurrent import RecurrentMemory
 
 # name -> constructor(input_size, hidden_size)
 MEMORIES: dict[str, Callable[[int, int], Memory]] = {
     "lstm": lambda d, h: RecurrentMemory(d, h, "lstm"),
     "gru": lambda d, h: RecurrentMemory(d, h, "gru"),
+    "mlp": lambda d, h: NoMemory(d),
 }
 
 
@@ -22,4 +24,4 @@ def make_memory(method: str, input_size: int, hidden_size: int) -> Memory:
     return MEMORIES[method](input_size, hidden_size)
 
 
-__all__ = ["MEMORIES", "Memory", "RecurrentMemory", "make_memory"]
+__all__ = ["MEMORIES", "Memory", "NoMemory", "RecurrentMemory", "make_memory"]

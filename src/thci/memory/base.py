@@ -32,12 +32,16 @@ class Memory(nn.Module, ABC):
         return torch.zeros(batch_size, self.state_size, device=device)
 
     @abstractmethod
-    def forward(self, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, x: torch.Tensor, state: torch.Tensor, keep: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Run the memory over whole sequences.
 
         Args:
             x: features, shape (B, L, input_size).
             state: state before the first step, shape (B, state_size).
+            keep: optional (B, L) bool, False where the gate removes the step's observation
+                from memory (the causal memory); memories without a gate ignore it.
 
         Returns:
             outputs of shape (B, L, output_size) and the state after the last step, (B, state_size).
