@@ -41,10 +41,10 @@ i.e. the extra prediction error per episode (Eq. 4 sums over t) that the interve
 where it applies (Prop. 2 integrates over histories that contain O^i). The two parts of the
 dynamics error are measured separately and the larger counts: the next-observation part as
 is, the reward part divided by the mean reward per episode (at least REWARD_SCALE_FLOOR), so
-that what decides a sparse reward is not diluted below ξ by the many unrewarded episodes. The control arm masks
-O^w only, so the ATE is the effect of S *given* the eliminated set, which is what the
-sequential elimination of the search needs; the environment's own noise, and whatever masking
-O^w costs, hit the control and the intervened arm alike and cancel.
+that what decides a sparse reward is not diluted below ξ by the many unrewarded episodes.
+The control arm masks O^w only, so the ATE is the effect of S *given* the eliminated set,
+which is what the sequential elimination of the search needs; the environment's own noise,
+and whatever masking O^w costs, hit the control and the intervened arm alike and cancel.
 
 Known limits (see the issues): with coarse parts, the per-episode ATE is averaged over almost
 every episode, which dilutes a rare cause's effect; and an observation that the *policy* makes
