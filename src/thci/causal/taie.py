@@ -42,6 +42,20 @@ def taie_of_rollout(
 
 
 @torch.no_grad()
+def observation_weights(agent: ActorCritic, obs: torch.Tensor) -> torch.Tensor:
+    """ν(o_t): the weight the agent's memory puts on each observation of a (T, N, D) rollout.
+
+    For the causal memory: 1 where the gate keeps the observation, 0 where it removes it; for
+    a memory that keeps everything (LSTM, GRU, or a gate not yet fitted): 1 everywhere.
+
+    Returns:
+        (T, N) float weights in [0, 1].
+    """
+    keep = None if agent.gate is None else agent.gate.keep(obs)
+    return torch.ones(obs.shape[:2]) if keep is None else keep.float()
+
+
+@torch.no_grad()
 def measure_taie(
     agent: ActorCritic,
     env_id: str,
@@ -60,8 +74,7 @@ def measure_taie(
             rollout, _ = collector.collect()
             if rollout.causal is None:
                 return None
-            keep = None if agent.gate is None else agent.gate.keep(rollout.obs)
-            weights = torch.ones_like(rollout.causal) if keep is None else keep
+            weights = observation_weights(agent, rollout.obs)
             errors.append(
                 taie_of_rollout(weights, rollout.causal, rollout.episode_starts, rollout.dones)
             )
