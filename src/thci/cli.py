@@ -1,4 +1,4 @@
-"""The ``thci`` command line: ``thci train``, ``thci evaluate``, ``thci envs``, ``thci demo``.
+"""The ``thci`` command line: ``train``, ``evaluate``, ``envs``, ``demo``, ``bench``, ``report``.
 
 User mistakes raise :class:`~thci.errors.ThciError`; :func:`main` prints its one line and
 exits with status 2, so no traceback is ever shown for them.
@@ -46,6 +46,22 @@ class DemoArgs:
     seed: int = 0
 
 
+@dataclass
+class BenchArgs:
+    """Train a grid of runs (env × method × algo × seed) under one root; resumes when rerun."""
+
+    preset: str | None = None
+    """Grid preset: paper-maze, paper-babyai, ablation, or their -quick variants."""
+    grid: Path | None = None
+    """Grid file (TOML or YAML) instead of a preset; see docs/experiments.md."""
+    root: Path | None = None
+    """Root directory of the runs (default: runs/bench/<preset or grid file name>)."""
+    backend: Literal["local", "ray"] = "local"
+    """local: worker processes on this machine; ray: Ray tasks (RAY_ADDRESS picks the cluster)."""
+    workers: int | None = None
+    """Runs at a time (default: cores // torch threads per run)."""
+
+
 def format_table(rows: dict[str, Any]) -> str:
     """Two-column text table of `rows`."""
     width = max(len(k) for k in rows)
@@ -57,7 +73,7 @@ def format_table(rows: dict[str, Any]) -> str:
     return "\n".join([lines[0], *lines[1:], lines[0]])
 
 
-def run_command(args: TrainConfig | EvaluateArgs | EnvsArgs | DemoArgs) -> None:
+def run_command(args: TrainConfig | EvaluateArgs | EnvsArgs | DemoArgs | BenchArgs) -> None:
     """Execute one parsed command."""
     if isinstance(args, TrainConfig):
         from thci.rl.trainer import train
@@ -74,6 +90,8 @@ def run_command(args: TrainConfig | EvaluateArgs | EnvsArgs | DemoArgs) -> None:
         if args.episodes < 10:
             raise ThciError(f"--episodes must be at least 10, got {args.episodes}")
         print(confounding_demo(args.episodes, args.seed).format())
+    elif isinstance(args, BenchArgs):
+        bench(args)
     else:
         import gymnasium as gym
 
@@ -83,10 +101,39 @@ def run_command(args: TrainConfig | EvaluateArgs | EnvsArgs | DemoArgs) -> None:
             print(env_id)
 
 
+def bench(args: BenchArgs) -> None:
+    """`thci bench`: run the grid, then say what happened and how to see the results."""
+    from thci.experiments.bench import run_bench
+    from thci.experiments.presets import PRESETS, load_grid
+
+    if (args.preset is None) == (args.grid is None):
+        raise ThciError(f"pass --preset NAME ({', '.join(PRESETS)}) or --grid FILE, not both")
+    grid = load_grid(args.preset or str(args.grid))
+    root = args.root or Path("runs") / "bench" / Path(grid.name).stem
+    result = run_bench(grid, root, args.backend, args.workers)
+    print(
+        f"grid {grid.name} in {root}: {len(result.skipped)} already finished, "
+        f"{len(result.started)} started, {len(result.resumed)} resumed, "
+        f"{len(result.failed)} failed"
+    )
+    if result.failed:
+        raise ThciError(
+            f"{len(result.failed)} runs failed (first: {next(iter(result.failed.items()))}); "
+            f"see {root / 'logs'} and rerun the command to retry them"
+        )
+    print(f"next: thci report {root}")
+
+
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``thci`` console script."""
     args = tyro.extras.subcommand_cli_from_dict(
-        {"train": TrainConfig, "evaluate": EvaluateArgs, "envs": EnvsArgs, "demo": DemoArgs},
+        {
+            "train": TrainConfig,
+            "evaluate": EvaluateArgs,
+            "envs": EnvsArgs,
+            "demo": DemoArgs,
+            "bench": BenchArgs,
+        },
         args=argv,
         prog="thci",
         description="History-based RL with causal memory (T-HCI).",
