@@ -62,6 +62,18 @@ class BenchArgs:
     """Runs at a time (default: cores // torch threads per run)."""
 
 
+@dataclass
+class ReportArgs:
+    """Tables and figures of a grid of runs (the paper's Fig. 5, 7, Tables 1, 2)."""
+
+    root: Annotated[Path, tyro.conf.Positional]
+    """Root directory of the runs (the --root of `thci bench`)."""
+    out: Path | None = None
+    """Where to write report.md, CSVs and PNGs (default: ROOT/report)."""
+    interventions: Path = Path("benchmarks/results/interventions.json")
+    """Results of benchmarks/interventions.py to include (App. J), when the file exists."""
+
+
 def format_table(rows: dict[str, Any]) -> str:
     """Two-column text table of `rows`."""
     width = max(len(k) for k in rows)
@@ -73,7 +85,9 @@ def format_table(rows: dict[str, Any]) -> str:
     return "\n".join([lines[0], *lines[1:], lines[0]])
 
 
-def run_command(args: TrainConfig | EvaluateArgs | EnvsArgs | DemoArgs | BenchArgs) -> None:
+def run_command(
+    args: TrainConfig | EvaluateArgs | EnvsArgs | DemoArgs | BenchArgs | ReportArgs,
+) -> None:
     """Execute one parsed command."""
     if isinstance(args, TrainConfig):
         from thci.rl.trainer import train
@@ -92,6 +106,12 @@ def run_command(args: TrainConfig | EvaluateArgs | EnvsArgs | DemoArgs | BenchAr
         print(confounding_demo(args.episodes, args.seed).format())
     elif isinstance(args, BenchArgs):
         bench(args)
+    elif isinstance(args, ReportArgs):
+        from thci.experiments.report import write_report
+
+        report = write_report(args.root, args.out, args.interventions)
+        print(f"wrote {report} and, beside it: ", end="")
+        print(", ".join(sorted(p.name for p in report.parent.iterdir() if p != report)))
     else:
         import gymnasium as gym
 
@@ -133,6 +153,7 @@ def main(argv: list[str] | None = None) -> None:
             "envs": EnvsArgs,
             "demo": DemoArgs,
             "bench": BenchArgs,
+            "report": ReportArgs,
         },
         args=argv,
         prog="thci",
