@@ -15,8 +15,10 @@ from typing import Any, Literal
 
 from thci.errors import ThciError
 
-Method = Literal["lstm", "gru", "mlp", "t-hci", "hci"]
+Method = Literal["lstm", "gru", "mlp", "nm", "wmg", "sai", "hai", "oracle", "t-hci", "hci"]
 CAUSAL_METHODS = ("t-hci", "hci")
+# Methods whose memory weighs each observation (ν of TAIE): the gate, attention, the labels.
+WEIGHING_METHODS = ("t-hci", "hci", "sai", "hai", "oracle")
 Algo = Literal["ppo", "a2c", "dmc"]
 
 # Fields that may differ between a run and its resumption: where it lives, the resume flag
@@ -33,7 +35,9 @@ class TrainConfig:
     env: str = "thci/PaperMaze-L1-v0"
     """Registered gymnasium id (discrete actions; Box, Discrete or MultiDiscrete observations)."""
     method: Method = "lstm"
-    """Memory of the agent."""
+    """Memory of the agent: lstm, gru, mlp (none), nm (Neural Map), wmg (Working Memory Graph),
+    sai / hai (soft / hard attention over the history), oracle (causal memory on the human
+    labels), t-hci / hci (causal memory on CI). See docs/baselines.md."""
     algo: Algo = "ppo"
     """RL algorithm: ppo (clipped surrogate), a2c (one policy-gradient step per rollout) or dmc
     (Deep Monte Carlo: Q regressed on whole-episode returns, epsilon-greedy)."""
@@ -59,6 +63,17 @@ class TrainConfig:
     """Width of the observation encoder."""
     hidden_size: int = 64
     """Width of the recurrent memory."""
+    history_window: int = 32
+    """sai, hai: how many of the episode's latest observations a step attends to."""
+    nm_map_size: int = 18
+    """nm: the Neural Map is nm_map_size x nm_map_size cells (PaperMaze is 18 x 15)."""
+    nm_channels: int = 16
+    """nm: features C of one map cell."""
+    wmg_memos: int = 8
+    """wmg: Memos S kept (WMG's factored-BabyAI setting, as the next three)."""
+    wmg_layers: int = 4
+    wmg_heads: int = 2
+    wmg_head_size: int = 128
 
     # Optimization (PPO, A2C, DMC)
     learning_rate: float = 1e-3
@@ -142,6 +157,13 @@ class TrainConfig:
             "num_steps": self.num_steps,
             "encoder_size": self.encoder_size,
             "hidden_size": self.hidden_size,
+            "history_window": self.history_window,
+            "nm_map_size": self.nm_map_size,
+            "nm_channels": self.nm_channels,
+            "wmg_memos": self.wmg_memos,
+            "wmg_layers": self.wmg_layers,
+            "wmg_heads": self.wmg_heads,
+            "wmg_head_size": self.wmg_head_size,
             "update_epochs": self.update_epochs,
             "num_minibatches": self.num_minibatches,
             "solve_window": self.solve_window,
@@ -189,6 +211,11 @@ class TrainConfig:
                 raise ThciError(f"--{_flag(name)} must be >= 0, got {getattr(self, name)}")
         if not 0 <= self.dmc_epsilon <= 1:
             raise ThciError(f"--dmc-epsilon must be in [0, 1], got {self.dmc_epsilon}")
+        if self.method == "sai" and self.encoder_size % 4:
+            raise ThciError(
+                f"--method sai splits --encoder-size over 4 attention heads: it must be a "
+                f"multiple of 4, got {self.encoder_size}"
+            )
         if self.ci_z < 2:
             raise ThciError(f"--ci-z must be at least 2, got {self.ci_z}")
         if self.ci_xi < 0:

@@ -1,14 +1,19 @@
 """Timely Averaged Inference Error (TAIE, the paper's Table 2).
 
 TAIE = E_τ [ Σ_t |ν(o_t) − ν*(o_t)| / T_τ ] over trajectories τ of the trained policy, where
-ν(o_t) is the method's weight on observation o_t (for the causal memory: 1 if the gate keeps it,
-0 if it removes it) and ν*(o_t) is the human label (``info["causal"]``). A perfect gate scores
-0, an inverted one 1.
+ν(o_t) is the method's weight on observation o_t and ν*(o_t) is the human label
+(``info["causal"]``). A perfect gate scores 0, an inverted one 1. ν is, per method:
+
+* causal memory (t-hci, hci): 1 if the gate keeps o_t, 0 if it removes it;
+* oracle: the label itself (TAIE 0 by construction, a check of the plumbing);
+* hai: the binary selection z_t of hard attention;
+* sai: per head, the attention that the episode's last step pays to o_t (each head's weights
+  sum to 1 over the episode's last ``history_window`` steps), so TAIE is reported per head;
+* every other memory: 1 everywhere (it keeps everything).
 """
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from thci.envs.factory import make_vector_env
@@ -26,33 +31,55 @@ def taie_of_rollout(
     """Per-episode inference errors of the complete episodes in a (T, N) rollout.
 
     Args:
-        weights: (T, N) ν(o_t) in [0, 1]. labels: (T, N) ν*(o_t) in {0, 1}.
+        weights: (T, N) or (T, N, K) ν(o_t) in [0, 1] (K: one column per attention head).
+        labels: (T, N) ν*(o_t) in {0, 1}.
         episode_starts, dones: (T, N) bool episode boundaries.
 
     Returns:
-        (E,) Σ_t |ν − ν*| / T_τ for each episode that starts and ends inside the rollout.
+        (E,) or (E, K) Σ_t |ν − ν*| / T_τ for each episode that starts and ends inside the
+        rollout.
     """
     segments = cut_into_segments(episode_starts)
-    error = (weights.float() - labels.float()).abs()
-    per_step = segments.gather(error) * segments.valid
+    per_head = weights.dim() == 3
+    weights = weights.float() if per_head else weights.float().unsqueeze(-1)
+    error = (weights - labels.float().unsqueeze(-1)).abs()
+    per_step = segments.gather(error) * segments.valid.unsqueeze(-1)
     lengths = segments.lengths
     last = segments.gather(dones)[torch.arange(len(lengths)), lengths - 1]
     complete = ~segments.continues & last
-    return (per_step.sum(dim=1) / lengths)[complete]
+    errors = (per_step.sum(dim=1) / lengths.unsqueeze(-1))[complete]
+    return errors if per_head else errors.squeeze(-1)
 
 
 @torch.no_grad()
-def observation_weights(agent: ActorCritic, obs: torch.Tensor) -> torch.Tensor:
-    """ν(o_t): the weight the agent's memory puts on each observation of a (T, N, D) rollout.
+def observation_weights(
+    agent: ActorCritic, obs: torch.Tensor, episode_starts: torch.Tensor | None = None
+) -> torch.Tensor:
+    """ν(o_t): the weight the agent's memory puts on each observation of a (T, N) rollout.
 
-    For the causal memory: 1 where the gate keeps the observation, 0 where it removes it; for
-    a memory that keeps everything (LSTM, GRU, or a gate not yet fitted): 1 everywhere.
+    Args:
+        obs: (T, N, D) the agent's inputs, ``Rollout.inputs`` (the observations followed by
+            the memory's side inputs; the same as ``Rollout.obs`` for memories without any).
+        episode_starts: (T, N) bool, where episodes start; attention weights are computed per
+            episode. Default: each column is one episode from t = 0.
 
     Returns:
-        (T, N) float weights in [0, 1].
+        (T, N) float weights in [0, 1] (the module docstring says which, per method), or
+        (T, N, K) for a memory with K attention heads (SAI).
     """
-    keep = None if agent.gate is None else agent.gate.keep(obs)
-    return torch.ones(obs.shape[:2]) if keep is None else keep.float()
+    steps, envs = obs.shape[:2]
+    features, _ = agent.memory_input(obs)
+    if episode_starts is None:
+        episode_starts = torch.zeros(steps, envs, dtype=torch.bool)
+    segments = cut_into_segments(episode_starts)
+    weights = agent.memory.observation_weights(segments.gather(features), segments.valid)
+    if weights is not None:  # back from (segments, L, K) to the rollout's (T, N, K)
+        result = torch.zeros(steps * envs, weights.shape[-1])
+        result[segments.index[segments.valid]] = weights[segments.valid]
+        result = result.view(steps, envs, -1)
+        return result.squeeze(-1) if result.shape[-1] == 1 else result
+    keep = None if agent.gate is None else agent.gate.keep(obs[..., : agent.observation_size])
+    return torch.ones(steps, envs) if keep is None else keep.float()
 
 
 @torch.no_grad()
@@ -63,8 +90,9 @@ def measure_taie(
     seed: int = 20_000,
     vectorization: str = "auto",
     greedy: bool = True,
-) -> float | None:
-    """TAIE of the agent's gate over `episodes` greedy trajectories; None without labels."""
+) -> float | list[float] | None:
+    """TAIE of the agent over `episodes` greedy trajectories; one value per attention head for
+    SAI; None when the environment gives no labels."""
     envs = make_vector_env(env_id, min(16, episodes), vectorization)
     try:
         collector = RolloutCollector(envs, agent, num_steps=128, gamma=0.99, greedy=greedy)
@@ -74,10 +102,11 @@ def measure_taie(
             rollout, _ = collector.collect()
             if rollout.causal is None:
                 return None
-            weights = observation_weights(agent, rollout.obs)
+            weights = observation_weights(agent, rollout.inputs, rollout.episode_starts)
             errors.append(
                 taie_of_rollout(weights, rollout.causal, rollout.episode_starts, rollout.dones)
             )
-        return float(np.mean(torch.cat(errors)[:episodes].numpy()))
+        taie = torch.cat(errors)[:episodes].mean(dim=0)
+        return float(taie) if taie.dim() == 0 else taie.tolist()
     finally:
         envs.close()

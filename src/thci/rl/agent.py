@@ -2,6 +2,10 @@
 
 The same agent serves rollouts (one step for N environments at a time, :meth:`step`) and
 updates (whole padded sequences, :meth:`forward`). Which memory it uses is the ``--method``.
+
+The agent's *input* is the flat observation followed by the memory's side inputs (agent
+positions for the Neural Map, labels for the Oracle, noise for hard attention; none for most
+memories), which the rollout collector appends (:attr:`thci.memory.Memory.side_inputs`).
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ class ActorCritic(nn.Module):
     ) -> None:
         super().__init__()
         self.gate = gate
+        self.observation_size = observation_size
         self.encoder = nn.Sequential(
             _layer(nn.Linear(observation_size, encoder_size), np.sqrt(2)), nn.ReLU()
         )
@@ -71,21 +76,36 @@ class ActorCritic(nn.Module):
         """Zero memory state, (batch_size, memory.state_size)."""
         return self.memory.initial_state(batch_size)
 
+    @property
+    def input_size(self) -> int:
+        """D_obs + the memory's side inputs: the width of what :meth:`forward` takes per step."""
+        return self.observation_size + self.memory.side_size
+
+    def memory_input(self, inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The memory's input (..., D + side) and the encoder's features (..., E) of agent
+        inputs (..., D_obs + side)."""
+        obs = inputs[..., : self.observation_size]
+        features = self.encoder(obs)
+        side = inputs[..., self.observation_size :]
+        own = obs if self.memory.reads_observation else features
+        return torch.cat((own, side), dim=-1), features
+
     def forward(
-        self, obs: torch.Tensor, state: torch.Tensor
+        self, inputs: torch.Tensor, state: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Run whole sequences.
 
         Args:
-            obs: (B, L, D_obs) observations.
+            inputs: (B, L, D_obs + side) observations and side inputs (:attr:`input_size`).
             state: (B, S) memory state before the first step.
 
         Returns:
             logits (B, L, A), values (B, L) and the final state (B, S).
         """
-        features = self.encoder(obs)
+        memory_input, features = self.memory_input(inputs)
+        obs = inputs[..., : self.observation_size]
         keep = None if self.gate is None else self.gate.keep(obs)
-        out, state = self.memory(features, state, keep)
+        out, state = self.memory(memory_input, state, keep)
         out = torch.cat((out, features), dim=-1)
         return self.actor(out), self.critic(out).squeeze(-1), state
 
@@ -95,7 +115,7 @@ class ActorCritic(nn.Module):
         """One step for N environments, zeroing the state where an episode starts.
 
         Args:
-            obs: (N, D_obs); state: (N, S); episode_start: (N,) bool.
+            obs: (N, D_obs + side) agent inputs; state: (N, S); episode_start: (N,) bool.
 
         Returns:
             logits (N, A), values (N,), new state (N, S).

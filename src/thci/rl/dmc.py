@@ -63,7 +63,7 @@ class DMC:
         """Several epochs of minibatch updates on the episodes that ended in `rollout`."""
         cfg = self.config
         steps = {
-            "obs": rollout.obs.numpy(),
+            "obs": rollout.inputs.numpy(),  # with the memory's side inputs (rl/rollout.py)
             "actions": rollout.actions.numpy(),
             "rewards": rollout.rewards.numpy(),
         }

@@ -83,6 +83,7 @@ class PPO:
             cfg.gae_lambda,
         )
         segments = cut_into_segments(rollout.episode_starts)
+        inputs = rollout.inputs  # observations and the memory's side inputs (rl/rollout.py)
         stats: dict[str, list[float]] = {}
         for _ in range(self.epochs):
             for which in segments.minibatches(self.num_minibatches):
@@ -92,7 +93,7 @@ class PPO:
                     rollout.initial_state[batch.column],
                     agent.initial_state(len(batch.column)),
                 )
-                logits, values, _ = agent(batch.gather(rollout.obs), state)
+                logits, values, _ = agent(batch.gather(inputs), state)
                 mask = batch.valid
                 dist = torch.distributions.Categorical(logits=logits[mask])
                 logprob = dist.log_prob(batch.gather(rollout.actions)[mask])

@@ -3,6 +3,15 @@
 The collector is shared by every algorithm: it steps N environments T times with the agent,
 keeps the agent's memory state across rollouts, bootstraps truncated episodes with the value
 of their final observation, and reports each finished episode (return, length, success).
+
+Side inputs: a memory may read more than the observation each step (the Neural Map the agent's
+position, the Oracle the human label, hard attention a uniform draw; see
+:attr:`thci.memory.Memory.side_inputs`). The collector reads them from the step's ``info`` (or
+draws the noise) and keeps them next to the observation: ``Rollout.side``, and
+``Rollout.inputs`` = observation ⊕ side inputs is what the agent acts on. So they travel through
+PPO/A2C minibatches, DMC's episodes and the checkpoint like the observation itself, with no
+algorithm knowing about them, while ``Rollout.obs`` stays the plain observation that the
+replay pool, the discretizer and the exploration bonus see.
 """
 
 from __future__ import annotations
@@ -15,6 +24,7 @@ import torch
 from gymnasium.vector import VectorEnv
 
 from thci.errors import ThciError
+from thci.memory import NOISE
 from thci.rl.agent import ActorCritic
 
 
@@ -39,6 +49,7 @@ class Rollout:
         final_causal: (T, N) bool info["causal"] of final_obs, or None.
         reached_info: the requested info keys of the observation each step reached, each
             (T, N, ...) (the final observation's info where an episode ended).
+        side: (T, N, E) the memory's side inputs of obs (E = 0 for most memories; None: none).
     """
 
     obs: torch.Tensor
@@ -55,6 +66,14 @@ class Rollout:
     causal: torch.Tensor | None
     final_causal: torch.Tensor | None
     reached_info: dict[str, np.ndarray]
+    side: torch.Tensor | None = None
+
+    @property
+    def inputs(self) -> torch.Tensor:
+        """(T, N, D + E) what the agent acted on: the observation followed by the side inputs."""
+        if self.side is None or self.side.shape[-1] == 0:
+            return self.obs
+        return torch.cat((self.obs, self.side), dim=-1)
 
 
 @dataclass(frozen=True)
@@ -103,6 +122,8 @@ class RolloutCollector:
         self.info_keys = info_keys
         self.epsilon, self.bootstrap_truncation = epsilon, bootstrap_truncation
         self.obs = torch.zeros(0)
+        self.side_inputs = agent.memory.side_inputs
+        self.side = torch.zeros(self.num_envs, agent.memory.side_size)
         self.causal: torch.Tensor | None = None
         self.episode_start = torch.ones(self.num_envs, dtype=torch.bool)
         self.state = agent.initial_state(self.num_envs)
@@ -113,6 +134,7 @@ class RolloutCollector:
         """Start fresh episodes in every environment."""
         obs, infos = self.envs.reset(seed=seed)
         self.obs = torch.as_tensor(obs, dtype=torch.float32)
+        self.side = self._side(infos)
         self.causal = _labels(infos)
         self.episode_start[:] = True
         self.state = self.agent.initial_state(self.num_envs)
@@ -124,6 +146,7 @@ class RolloutCollector:
         """Run T steps in each environment; return the rollout and the episodes that ended."""
         T, N = self.num_steps, self.num_envs
         obs = torch.zeros(T, N, *self.obs.shape[1:])
+        side = torch.zeros(T, N, self.side.shape[1])
         actions = torch.zeros(T, N, dtype=torch.long)
         logprobs, values, rewards = (torch.zeros(T, N) for _ in range(3))
         dones = torch.zeros(T, N, dtype=torch.bool)
@@ -138,7 +161,7 @@ class RolloutCollector:
         episodes: list[Episode] = []
 
         for t in range(T):
-            logits, value, state = self.agent.step(self.obs, self.state, self.episode_start)
+            logits, value, state = self.agent.step(self._inputs(), self.state, self.episode_start)
             # Sampling from the logits directly: torch.distributions' argument checks cost
             # about as much as the environment step here.
             log_probs = torch.log_softmax(logits, dim=-1)
@@ -152,8 +175,9 @@ class RolloutCollector:
                 action = torch.multinomial(log_probs.exp(), 1, replacement=True).squeeze(1)
             next_obs, reward, terminated, truncated, infos = self.envs.step(action.numpy())
 
-            obs[t], actions[t], logprobs[t], values[t] = (
+            obs[t], side[t], actions[t], logprobs[t], values[t] = (
                 self.obs,
+                self.side,
                 action,
                 log_probs.gather(1, action.unsqueeze(1)).squeeze(1),
                 value,
@@ -180,8 +204,11 @@ class RolloutCollector:
             cut = np.flatnonzero(truncated & ~terminated)
             if len(cut) and self.bootstrap_truncation:
                 final = torch.as_tensor(final_observations(infos, cut), dtype=torch.float32)
+                final_side = self._side(infos["final_info"])[cut]
                 _, final_value, _ = self.agent.step(
-                    final, state[cut], torch.zeros(len(cut), dtype=torch.bool)
+                    torch.cat((final, final_side), dim=-1),
+                    state[cut],
+                    torch.zeros(len(cut), dtype=torch.bool),
                 )
                 step_reward[cut] += self.gamma * final_value
             rewards[t] = step_reward
@@ -204,11 +231,12 @@ class RolloutCollector:
                 self.episode_length[ended] = 0
 
             self.obs = torch.as_tensor(next_obs, dtype=torch.float32)
+            self.side = self._side(infos)
             self.causal = _labels(infos) if labelled else None
             self.episode_start = torch.as_tensor(done)
             self.state = state
 
-        _, last_value, _ = self.agent.step(self.obs, self.state, self.episode_start)
+        _, last_value, _ = self.agent.step(self._inputs(), self.state, self.episode_start)
         rollout = Rollout(
             obs,
             actions,
@@ -224,8 +252,29 @@ class RolloutCollector:
             causal,
             final_causal,
             {key: np.stack(values) for key, values in reached_info.items()},
+            side,
         )
         return rollout, episodes
+
+    def _inputs(self) -> torch.Tensor:
+        """(N, D + E) the agent's input for the current observations."""
+        return torch.cat((self.obs, self.side), dim=-1)
+
+    def _side(self, infos: dict[str, Any]) -> torch.Tensor:
+        """(N, E) the memory's side inputs for the observations `infos` describes."""
+        columns = []
+        for name, width in self.side_inputs:
+            if name == NOISE:
+                columns.append(torch.rand(self.num_envs, width))
+                continue
+            if name not in infos:
+                raise ThciError(
+                    f"the environment reports no info[{name!r}], which the agent's memory "
+                    f"({type(self.agent.memory).__name__}) reads every step"
+                )
+            value = np.asarray(infos[name], dtype=np.float32).reshape(self.num_envs, width)
+            columns.append(torch.as_tensor(value))
+        return torch.cat(columns, dim=1) if columns else torch.zeros(self.num_envs, 0)
 
     def _success(self, infos: dict[str, Any], ended: np.ndarray) -> np.ndarray | None:
         """Success flags (len(ended),) of the episodes that just ended, or None if unknown."""
@@ -240,6 +289,7 @@ class RolloutCollector:
         """Everything needed to continue collecting bit-identically (env state if capturable)."""
         state: dict[str, Any] = {
             "obs": self.obs.clone(),
+            "side": self.side.clone(),
             "causal": self.causal,
             "episode_start": self.episode_start.clone(),
             "memory_state": self.state.clone(),
@@ -258,6 +308,7 @@ class RolloutCollector:
         if "envs" in state and hasattr(self.envs, "set_state"):
             self.envs.set_state({k: v.numpy() for k, v in state["envs"].items()})
             self.obs = state["obs"].clone()
+            self.side = state["side"].clone()
             self.causal = state["causal"]
             self.episode_start = state["episode_start"].clone()
             self.state = state["memory_state"].clone()

@@ -23,7 +23,7 @@ import thci
 from thci.causal.gate import Gate
 from thci.causal.loop import CausalInferenceLoop
 from thci.causal.taie import measure_taie
-from thci.config import CAUSAL_METHODS, TrainConfig
+from thci.config import CAUSAL_METHODS, WEIGHING_METHODS, TrainConfig
 from thci.envs.factory import make_vector_env
 from thci.errors import ThciError
 from thci.experiments.run_dir import (
@@ -50,10 +50,21 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
     T-HCI and HCI use the causal memory: an LSTM behind a gate fitted by the CI loop.
     """
     causal = config.method in CAUSAL_METHODS
-    memory = make_memory(
-        "lstm" if causal else config.method, config.encoder_size, config.hidden_size
-    )
     observation_size = int(envs.single_observation_space.shape[0])
+    memory = make_memory(
+        "lstm" if causal else config.method,
+        config.encoder_size,
+        config.hidden_size,
+        observation_size=observation_size,
+        babyai_observations=config.env.startswith("thci/BabyAI-"),
+        window=config.history_window,
+        nm_map_size=config.nm_map_size,
+        nm_channels=config.nm_channels,
+        wmg_memos=config.wmg_memos,
+        wmg_layers=config.wmg_layers,
+        wmg_heads=config.wmg_heads,
+        wmg_head_size=config.wmg_head_size,
+    )
     return ActorCritic(
         observation_size,
         int(envs.single_action_space.n),
@@ -83,14 +94,7 @@ def train(config: TrainConfig) -> dict[str, Any]:
     torch.set_num_threads(config.torch_threads)
     envs = make_vector_env(config.env, config.num_envs, config.vectorization)
     try:
-        if config.exploration != "none" and config.count_key is not None:
-            _, infos = envs.reset(seed=config.seed)
-            if config.count_key not in infos:
-                reported = ", ".join(k for k in infos if not k.startswith("_")) or "nothing"
-                raise ThciError(
-                    f"{config.env} reports no info[{config.count_key!r}] for --count-key "
-                    f"(its info holds: {reported}); count observations by leaving it out"
-                )
+        _check_info_keys(config, envs)
         config = dataclasses.replace(config, run_dir=config.run_dir or default_run_dir(config))
         assert config.run_dir is not None
         if config.resume:
@@ -102,6 +106,30 @@ def train(config: TrainConfig) -> dict[str, Any]:
         return _train(config, envs, run, checkpoint)
     finally:
         envs.close()
+
+
+# What a memory's side input means, for the error when the environment does not report it.
+SIDE_INPUT_NEEDS = {"agent_pos": "the agent's grid position", "causal": "the human labels"}
+
+
+def _check_info_keys(config: TrainConfig, envs: VectorEnv) -> None:
+    """Fail with one line, before a run directory exists, when the environment's info lacks an
+    entry that --count-key or the method's memory reads."""
+    needed: list[tuple[str, str]] = []
+    if config.exploration != "none" and config.count_key is not None:
+        needed.append((config.count_key, "for --count-key; count observations by leaving it out"))
+    for key, _ in build_agent(config, envs).memory.side_inputs:  # the seed resets it in _train
+        if key in SIDE_INPUT_NEEDS:
+            needed.append((key, f"which --method {config.method} needs ({SIDE_INPUT_NEEDS[key]})"))
+    if not needed:
+        return
+    _, infos = envs.reset(seed=config.seed)
+    for key, why in needed:
+        if key not in infos:
+            reported = ", ".join(k for k in infos if not k.startswith("_")) or "nothing"
+            raise ThciError(
+                f"{config.env} reports no info[{key!r}] {why} (its info holds: {reported})"
+            )
 
 
 def _train(
@@ -282,7 +310,7 @@ def _train(
         "mean_return_last100": _finite_or_none(tracker.mean_reward),
         "num_parameters": num_parameters,
         **(ci.summary() if ci is not None else {}),
-        "taie": None if ci is None else _taie(agent, config),
+        "taie": _taie(agent, config) if config.method in WEIGHING_METHODS else None,
         "wall_clock_s": round(wall_clock, 3),
         "steps_per_second": round(global_step / max(wall_clock, 1e-9), 1),
         "thci_version": thci.__version__,
@@ -291,10 +319,13 @@ def _train(
     return summary
 
 
-def _taie(agent: ActorCritic, config: TrainConfig) -> float | None:
+def _taie(agent: ActorCritic, config: TrainConfig) -> float | list[float] | None:
+    """TAIE of the trained agent; one value per attention head for SAI."""
     taie = measure_taie(
         agent, config.env, seed=config.seed + 20_000, vectorization=config.vectorization
     )
+    if isinstance(taie, list):
+        return [round(v, 4) for v in taie]
     return None if taie is None else round(taie, 4)
 
 
