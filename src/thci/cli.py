@@ -1,4 +1,4 @@
-"""The ``thci`` command line: ``train``, ``evaluate``, ``envs``, ``demo``, ``bench``, ``report``.
+"""The ``thci`` command line: train, evaluate, envs, demo, bench, report, heatmap.
 
 User mistakes raise :class:`~thci.errors.ThciError`; :func:`main` prints its one line and
 exits with status 2, so no traceback is ever shown for them.
@@ -74,6 +74,18 @@ class ReportArgs:
     """Results of benchmarks/interventions.py to include (App. J), when the file exists."""
 
 
+@dataclass
+class HeatmapArgs:
+    """Fig. 8: colour the cells of a greedy episode by the memory's weight on each observation."""
+
+    run_dir: Annotated[Path, tyro.conf.Positional]
+    """Run directory written by `thci train` (or `thci bench`), on a Maze or BabyAI level."""
+    out: Path | None = None
+    """PNG to write (default: RUN_DIR/heatmap.png)."""
+    seed: int = 10_000
+    """Seed of the episode."""
+
+
 def format_table(rows: dict[str, Any]) -> str:
     """Two-column text table of `rows`."""
     width = max(len(k) for k in rows)
@@ -86,7 +98,7 @@ def format_table(rows: dict[str, Any]) -> str:
 
 
 def run_command(
-    args: TrainConfig | EvaluateArgs | EnvsArgs | DemoArgs | BenchArgs | ReportArgs,
+    args: TrainConfig | EvaluateArgs | EnvsArgs | DemoArgs | BenchArgs | ReportArgs | HeatmapArgs,
 ) -> None:
     """Execute one parsed command."""
     if isinstance(args, TrainConfig):
@@ -112,6 +124,10 @@ def run_command(
         report = write_report(args.root, args.out, args.interventions)
         print(f"wrote {report} and, beside it: ", end="")
         print(", ".join(sorted(p.name for p in report.parent.iterdir() if p != report)))
+    elif isinstance(args, HeatmapArgs):
+        from thci.experiments.heatmap import heatmap
+
+        print(f"wrote {heatmap(args.run_dir, args.out, args.seed)}")
     else:
         import gymnasium as gym
 
@@ -154,6 +170,7 @@ def main(argv: list[str] | None = None) -> None:
             "demo": DemoArgs,
             "bench": BenchArgs,
             "report": ReportArgs,
+            "heatmap": HeatmapArgs,
         },
         args=argv,
         prog="thci",

@@ -1,0 +1,67 @@
+"""`thci heatmap`: the greedy episode it draws, per-head panels, bad input."""
+
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from thci.cli import main
+from thci.config import TrainConfig
+from thci.envs import load_maze_level
+from thci.experiments import heatmap as heatmap_module
+from thci.experiments.heatmap import greedy_trajectory, heatmap
+from thci.rl.trainer import train
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory) -> Path:
+    """A tiny T-HCI run on Maze level 1 (its gate is not fitted yet: it keeps everything)."""
+    path = tmp_path_factory.mktemp("heatmap") / "run"
+    config = TrainConfig(
+        method="t-hci", total_steps=256, num_envs=4, num_steps=32, num_minibatches=4,
+        run_dir=path, progress=False,
+    )  # fmt: skip
+    train(config)
+    return path
+
+
+def png_width(path: Path) -> int:
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    return struct.unpack(">I", data[16:20])[0]
+
+
+def test_trajectory_is_a_walk_through_the_maze_from_its_start(run_dir):
+    config, trajectory = greedy_trajectory(run_dir)
+    assert config.method == "t-hci"
+    maze = load_maze_level(1)
+    steps = len(trajectory.positions)
+    assert 1 <= steps <= 30  # Maze episodes end after at most 30 steps
+    np.testing.assert_array_equal(trajectory.positions[0], maze.start)
+    moves = np.abs(np.diff(trajectory.positions, axis=0)).sum(axis=1)
+    assert set(moves.tolist()) <= {0, 1}  # one cell at a time (0: bumped into a wall)
+    assert trajectory.weights.shape == (steps, 1)
+    assert np.all(trajectory.weights == 1.0)  # an unfitted gate keeps every observation
+    assert trajectory.frame.shape[0] == pytest.approx(maze.shape[0] * trajectory.cell_pixels)
+
+
+def test_one_panel_per_attention_head(run_dir, tmp_path, monkeypatch):
+    single = heatmap(run_dir, tmp_path / "single.png")
+
+    def four_heads(agent, obs):
+        return torch.rand(obs.shape[0], obs.shape[1], 4)
+
+    monkeypatch.setattr(heatmap_module, "observation_weights", four_heads)
+    _, trajectory = greedy_trajectory(run_dir)
+    assert trajectory.weights.shape[1] == 4
+    heads = heatmap(run_dir, tmp_path / "heads.png")
+    assert png_width(heads) > 2 * png_width(single)  # four panels side by side, not one
+
+
+def test_heatmap_of_a_non_run_is_a_one_line_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["heatmap", str(tmp_path)])
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 2 and len(err.splitlines()) == 1 and "config.json" in err
