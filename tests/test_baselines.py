@@ -15,9 +15,11 @@ from test_cli import (
 )
 
 from thci.causal.taie import observation_weights, taie_of_rollout
-from thci.memory import NOISE, make_memory
+from thci.envs.factory import make_vector_env
+from thci.memory import NOISE, NeuralMap, make_memory
 from thci.memory.wmg import babyai_factors
 from thci.rl.agent import ActorCritic
+from thci.rl.rollout import RolloutCollector
 
 OBS = 3  # the recall task's observations: cue A, cue B, blank
 SMALL = {
@@ -224,6 +226,26 @@ def test_oracle_keeps_exactly_the_labelled_observations():
     _, _, state = agent(inputs, agent.initial_state(2))
     _, _, other_state = agent(other, agent.initial_state(2))
     assert torch.allclose(state, other_state)
+
+
+def test_collector_appends_the_positions_the_environment_reports():
+    envs = make_vector_env("thci/PaperMaze-L1-v0", 4)
+    try:
+        torch.manual_seed(0)
+        agent = ActorCritic(int(envs.single_observation_space.shape[0]), 4, NeuralMap(8, 18, 4), 8)
+        collector = RolloutCollector(envs, agent, 40, 0.99, info_keys=("agent_pos",))
+        collector.reset(seed=1)
+        rollout, _ = collector.collect()
+    finally:
+        envs.close()
+    assert rollout.side.shape == (40, 4, 2)
+    assert torch.equal(rollout.inputs, torch.cat((rollout.obs, rollout.side), dim=-1))
+    # the position an action reached is the next step's side input, unless the episode ended
+    reached = torch.as_tensor(rollout.reached_info["agent_pos"][:-1]).float()
+    going_on = ~rollout.dones[:-1]
+    assert bool(going_on.any()) and bool(rollout.dones.any())
+    assert torch.equal(rollout.side[1:][going_on], reached[going_on])
+    assert len(torch.unique(rollout.side.reshape(-1, 2), dim=0)) > 1  # the agent moved
 
 
 @pytest.mark.parametrize("algo", ["ppo", "a2c", "dmc"])

@@ -308,7 +308,8 @@ class RolloutCollector:
         if "envs" in state and hasattr(self.envs, "set_state"):
             self.envs.set_state({k: v.numpy() for k, v in state["envs"].items()})
             self.obs = state["obs"].clone()
-            self.side = state["side"].clone()
+            # checkpoints written before side inputs existed belong to memories without any
+            self.side = state.get("side", torch.zeros(self.num_envs, 0)).clone()
             self.causal = state["causal"]
             self.episode_start = state["episode_start"].clone()
             self.state = state["memory_state"].clone()
