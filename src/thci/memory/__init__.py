@@ -10,6 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from thci.config import TrainConfig
 from thci.errors import ThciError
 from thci.memory.attention import HardAttentionMemory, SoftAttentionMemory
 from thci.memory.base import NOISE, Memory
@@ -36,13 +37,14 @@ class MemorySpec:
     hidden_size: int
     observation_size: int = 0
     babyai_observations: bool = False
-    window: int = 32
-    nm_map_size: int = 18
-    nm_channels: int = 16
-    wmg_memos: int = 8
-    wmg_layers: int = 4
-    wmg_heads: int = 2
-    wmg_head_size: int = 128
+    # the defaults are the command line's (documented in TrainConfig)
+    window: int = TrainConfig.history_window
+    nm_map_size: int = TrainConfig.nm_map_size
+    nm_channels: int = TrainConfig.nm_channels
+    wmg_memos: int = TrainConfig.wmg_memos
+    wmg_layers: int = TrainConfig.wmg_layers
+    wmg_heads: int = TrainConfig.wmg_heads
+    wmg_head_size: int = TrainConfig.wmg_head_size
 
 
 def _wmg(spec: MemorySpec) -> Memory:

@@ -58,10 +58,11 @@ class NeuralMap(Memory):
     def cells(self, x: torch.Tensor) -> torch.Tensor:
         """Flat map cell index row * map_size + col of each step, (B, L) long."""
         position = x[..., self.input_size : self.input_size + 2].round().long()
-        if bool(((position < 0) | (position >= self.map_size)).any()):
+        outside = ((position < 0) | (position >= self.map_size)).any(dim=-1)
+        if bool(outside.any()):
             raise ThciError(
-                f"agent position {position.reshape(-1, 2).max(0).values.tolist()} lies outside "
-                f"the Neural Map of {self.map_size}x{self.map_size}: raise --nm-map-size"
+                f"agent position {position[outside][0].tolist()} lies outside the Neural Map "
+                f"of {self.map_size}x{self.map_size} cells: raise --nm-map-size"
             )
         return position[..., 0] * self.map_size + position[..., 1]
 
