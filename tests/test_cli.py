@@ -185,9 +185,15 @@ def test_lstm_ppo_learns_paper_maze_level1(tmp_path):
     assert evaluation["success_rate"] >= 0.8
 
 
-def assert_stop_and_resume_matches(tmp_path: Path, reference: dict, args: list[str]) -> None:
-    """A run stopped at 2048 steps and resumed to 4096 ends like `reference` (4096 at once)."""
+def assert_stop_and_resume_matches(
+    tmp_path: Path, reference: dict, args: list[str], round_in_flight: bool = False
+) -> None:
+    """A run stopped at 2048 steps and resumed to 4096 ends like `reference` (4096 at once);
+    with `round_in_flight`, the stopped run's checkpoint holds a CI round not yet applied."""
     train(tmp_path, "split", "--total-steps", "2048", *args)
+    if round_in_flight:
+        checkpoint = torch.load(tmp_path / "split" / "checkpoint.pt", weights_only=True)
+        assert checkpoint["ci"]["round_in_flight"] is not None
     resume = ["--run-dir", str(tmp_path / "split"), "--resume", "--total-steps", "4096"]
     assert run_cli(["train", *resume, *FAST, *args]) == 0
     resumed = json.loads((tmp_path / "split" / "summary.json").read_text())
@@ -198,15 +204,15 @@ T_HCI_FAST = [
     "--method",
     "t-hci",
     "--ci-every",
-    "1024",
+    "512",
+    "--ci-lag",
+    "512",
     "--ci-min-episodes",
     "50",
     "--ci-min-rewarded-episodes",
-    "5",
+    "0",
     "--ci-base-steps",
     "30",
-    "--ci-finetune-steps",
-    "20",
     "--seed",
     "5",
 ]
@@ -223,13 +229,21 @@ def test_t_hci_run_reports_ci_and_resumes_to_the_same_result(tmp_path):
     log = json.loads((tmp_path / "reference" / "ci_interventions.json").read_text())
     assert len(log) == reference["interventions"]
 
-    assert_stop_and_resume_matches(tmp_path, reference, T_HCI_FAST)
+    # Stopped at 2048 steps, a round is in flight: the resumed run computes it again.
+    assert_stop_and_resume_matches(tmp_path, reference, T_HCI_FAST, round_in_flight=True)
+
+    # The worker process changes where a round runs, never what it finds or when it applies.
+    in_process = train(
+        tmp_path, "in-process", "--total-steps", "4096", "--no-ci-async", *T_HCI_FAST
+    )
+    assert without_timing(in_process) == without_timing(reference)
+    assert in_process["ci_blocking_s"] >= in_process["ci_wall_clock_s"] * 0.9
 
 
 @pytest.mark.parametrize("algo", ["a2c", "dmc"])
 def test_a2c_and_dmc_train_the_causal_memory_and_resume_to_the_same_result(tmp_path, algo):
-    # few rewarded episodes this early with A2C/DMC: let CI start on the pool size alone
-    args = [*T_HCI_FAST, "--algo", algo, "--ci-min-rewarded-episodes", "0"]
+    # (and the optional per-intervention fine-tuning of the effect predictor)
+    args = [*T_HCI_FAST, "--algo", algo, "--ci-finetune-steps", "5"]
     reference = train(tmp_path, "reference", "--total-steps", "4096", *args)
     assert reference["algo"] == algo and reference["ci_rounds"] >= 1
     assert reference["episodes"] > 0

@@ -104,6 +104,12 @@ class TrainConfig:
     # Counterfactual inference (methods t-hci and hci)
     ci_every: int = 8192
     """Env steps between CI rounds (the first runs once ci_min_episodes episodes are pooled)."""
+    ci_lag: int = 8192
+    """Env steps from a round's start (on the pool as it was) to the update at which its gate
+    takes effect; the RL loop waits only if the round has not finished by then."""
+    ci_async: bool = True
+    """Run CI rounds in a worker process beside the RL loop (Fig. 3); results are identical
+    either way, as the gate takes effect at the same step."""
     ci_min_episodes: int = 400
     """Episodes the replay pool must hold before the first CI round."""
     ci_min_rewarded_episodes: int = 50
@@ -183,6 +189,8 @@ class TrainConfig:
             raise ThciError(
                 f"--ci-min-rewarded-episodes must be >= 0, got {self.ci_min_rewarded_episodes}"
             )
+        if self.ci_lag < 0:
+            raise ThciError(f"--ci-lag must be >= 0, got {self.ci_lag}")
         if self.ci_finetune_steps < 0:
             raise ThciError(f"--ci-finetune-steps must be >= 0, got {self.ci_finetune_steps}")
         floats = {

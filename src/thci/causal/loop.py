@@ -1,17 +1,26 @@
 """The CI loop of Fig. 3: replay pool -> HCI / T-HCI -> gate, alternating with the RL loop.
 
 After every rollout the loop discretizes the observations, cuts the rollout into whole
-episodes and adds them to the replay pool. On its schedule it runs a CI round: fit the effect
-predictor on the pool, search the observed space Ô for the observations without causal effect
-(O^w), and fit the gate to O^w (Eq. 10), from which moment the agent's causal memory drops
+episodes and adds them to the replay pool. On its schedule it starts a CI round on a snapshot
+of the pool: fit the effect predictor, search the observed space Ô for the observations
+without causal effect (O^w), and fit the gate to O^w (Eq. 10). The round's gate takes effect
+``ci_lag`` env steps after the round started, from which moment the agent's causal memory drops
 those observations. Rounds stop once two in a row agree (or after ``ci_max_rounds``).
+
+As in Fig. 3, the two loops run side by side: with ``ci_async`` a round runs in a worker
+process while the RL loop goes on, and the RL loop waits only if the round is not finished when
+its gate is due. The gate takes effect at the same step whether or not the round ran in a
+worker, so a run's results do not depend on the machine's speed, and a checkpoint taken while a
+round is in flight holds the round's inputs, so a resumed run recomputes the same round.
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import time
 from dataclasses import asdict, dataclass
-from typing import Any
+from multiprocessing.pool import Pool
+from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
@@ -20,7 +29,7 @@ import torch
 from thci.causal.discretize import Discretizer, discretizer_from_state, make_discretizer
 from thci.causal.gate import Gate
 from thci.causal.predictor import EffectEstimator, PredictorConfig
-from thci.causal.replay import PoolEpisode, ReplayPool, pad_episodes
+from thci.causal.replay import PoolArrays, PoolEpisode, ReplayPool, pad_episodes
 from thci.causal.search import CIResult, hci, t_hci
 from thci.config import TrainConfig
 from thci.rl.episodes import EpisodeAssembler
@@ -29,7 +38,9 @@ from thci.rl.rollout import Rollout
 
 @dataclass(frozen=True)
 class CIRound:
-    """What one CI round did (a row of ci_rounds.csv)."""
+    """What one CI round did (a row of ci_rounds.csv): started on the pool at `global_step`,
+    took `seconds` of compute, its gate took effect at `applied_step`, and the RL loop waited
+    `blocking_seconds` for it (all of `seconds` when the round runs in the RL process)."""
 
     round: int
     global_step: int
@@ -40,6 +51,96 @@ class CIRound:
     causal: int
     seconds: float
     gate_accuracy: float
+    applied_step: int
+    blocking_seconds: float
+
+
+@dataclass(frozen=True)
+class CIJob:
+    """Everything one CI round needs, picklable so that it can run in a worker process.
+
+    Attributes:
+        pool: the replay pool's episodes when the round started.
+        observations: code -> one observation of that code (D,), for the gate fit.
+        gate_state: the gate's parameters when the round started (the fit continues them).
+        observation_size: D. num_actions: A.
+        method: "hci" or "t-hci". z, xi: the search's Z and ξ.
+        predictor: settings of the effect predictor p_ζ.
+        threads: torch threads of the round.
+    """
+
+    pool: PoolArrays
+    observations: dict[int, np.ndarray]
+    gate_state: dict[str, torch.Tensor]
+    observation_size: int
+    num_actions: int
+    method: str
+    z: int
+    xi: float
+    predictor: PredictorConfig
+    threads: int
+
+
+@dataclass(frozen=True)
+class CIOutcome:
+    """A finished CI round: the search's result, the fitted gate and the round's compute time."""
+
+    result: CIResult
+    gate_state: dict[str, torch.Tensor]
+    gate_accuracy: float
+    seconds: float
+
+
+def run_ci_job(job: CIJob) -> CIOutcome:
+    """One CI round: effect predictor, search, gate fit. Runs in the RL process or a worker."""
+    started = time.perf_counter()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(job.threads)
+    try:
+        with torch.random.fork_rng():  # CI must not shift the RL loop's random stream
+            estimator = EffectEstimator(job.pool, job.num_actions, job.predictor)
+            if job.method == "hci":
+                result = hci(estimator, xi=job.xi)
+            else:
+                result = t_hci(estimator, z=job.z, xi=job.xi)
+            gate = Gate(job.observation_size)
+            gate.load_state_dict(job.gate_state)
+            observations = torch.as_tensor(
+                np.stack([job.observations[int(c)] for c in result.observed]),
+                dtype=torch.float32,
+            )
+            fit = gate.fit(
+                observations, torch.as_tensor(np.isin(result.observed, result.eliminated))
+            )
+    finally:
+        torch.set_num_threads(threads)
+    return CIOutcome(result, gate.state_dict(), fit.accuracy, time.perf_counter() - started)
+
+
+class _Outcome(Protocol):
+    def get(self) -> CIOutcome: ...
+
+
+@dataclass(frozen=True)
+class _Computed:
+    """An outcome computed in the RL process (same interface as a worker's AsyncResult)."""
+
+    outcome: CIOutcome
+
+    def get(self) -> CIOutcome:
+        return self.outcome
+
+
+@dataclass
+class _PendingRound:
+    """A started round: its inputs (kept for checkpoints), when its gate takes effect, and
+    its outcome (still being computed while a worker has it)."""
+
+    job: CIJob
+    started_step: int
+    apply_step: int
+    outcome: _Outcome
+    blocking_seconds: float = 0.0
 
 
 class CausalInferenceLoop:
@@ -71,6 +172,8 @@ class CausalInferenceLoop:
         self.last_result: CIResult | None = None
         self.stable_rounds = 0
         self.next_round_step = config.ci_every
+        self.pending: _PendingRound | None = None
+        self._workers: Pool | None = None
 
     # ------------------------------------------------------------------ the RL loop's side
     def observe(self, rollout: Rollout) -> None:
@@ -108,58 +211,93 @@ class CausalInferenceLoop:
             self.pool.add(episode, np.concatenate([piece["obs"], final_obs[end, n][None]]))
 
     # ------------------------------------------------------------------ the CI loop's side
+    def step(self, global_step: int) -> CIRound | None:
+        """Called after every RL update: applies the pending round once its step has come
+        (waiting for it if need be), then starts the next round when one is due."""
+        record = None
+        if self.pending is not None and global_step >= self.pending.apply_step:
+            record = self._apply(global_step)
+        if self.due(global_step):
+            self._start(global_step)
+        return record
+
     def due(self, global_step: int) -> bool:
-        """Whether a CI round should run now."""
+        """Whether a CI round should start now."""
         return (
-            global_step >= self.next_round_step
+            self.pending is None
+            and global_step >= self.next_round_step
             and len(self.pool) >= self.config.ci_min_episodes
             and self.pool.num_rewarded >= self.config.ci_min_rewarded_episodes
             and len(self.rounds) < self.config.ci_max_rounds
             and self.stable_rounds < 2
         )
 
-    def run_round(self, global_step: int) -> CIRound:
-        """One CI round on the pool: search Ô, then fit the gate to O^w."""
-        started = time.perf_counter()
+    def _job(self, pool: PoolArrays, observations: dict[int, np.ndarray]) -> CIJob:
         cfg = self.config
-        predictor = PredictorConfig(
-            target=cfg.ci_target,
-            base_steps=cfg.ci_base_steps,
-            finetune_steps=cfg.ci_finetune_steps,
-            seed=cfg.seed + len(self.rounds),
+        return CIJob(
+            pool=pool,
+            observations=observations,
+            gate_state={k: v.clone() for k, v in self.gate.state_dict().items()},
+            observation_size=int(np.prod(self.observation_space.shape)),
+            num_actions=self.num_actions,
+            method=cfg.method,
+            z=cfg.ci_z,
+            xi=cfg.ci_xi,
+            predictor=PredictorConfig(
+                target=cfg.ci_target,
+                base_steps=cfg.ci_base_steps,
+                finetune_steps=cfg.ci_finetune_steps,
+                seed=cfg.seed + len(self.rounds),
+            ),
+            threads=cfg.ci_threads,
         )
-        rl_threads = torch.get_num_threads()
-        torch.set_num_threads(cfg.ci_threads)
-        with torch.random.fork_rng():  # CI must not shift the RL loop's random stream
-            estimator = EffectEstimator(self.pool.arrays(), self.num_actions, predictor)
-            if cfg.method == "hci":
-                result = hci(estimator, xi=cfg.ci_xi)
-            else:
-                result = t_hci(estimator, z=cfg.ci_z, xi=cfg.ci_xi)
-        torch.set_num_threads(rl_threads)
-        observations = torch.as_tensor(
-            np.stack([self.pool.observations[int(c)] for c in result.observed]),
-            dtype=torch.float32,
-        )
-        eliminated = torch.as_tensor(np.isin(result.observed, result.eliminated))
-        fit = self.gate.fit(observations, eliminated)
 
+    def _start(self, global_step: int) -> None:
+        pool = self.pool.arrays()
+        codes = np.unique(pool.codes[pool.codes >= 0])
+        job = self._job(pool, {int(c): self.pool.observations[int(c)] for c in codes})
+        self._submit(job, global_step, global_step + self.config.ci_lag)
+
+    def _submit(self, job: CIJob, started_step: int, apply_step: int) -> None:
+        blocking = 0.0
+        outcome: _Outcome
+        if self.config.ci_async:
+            if self._workers is None:  # spawn: a fresh interpreter, safe with torch threads
+                self._workers = multiprocessing.get_context("spawn").Pool(1)
+            outcome = self._workers.apply_async(run_ci_job, (job,))
+        else:
+            started = time.perf_counter()
+            outcome = _Computed(run_ci_job(job))
+            blocking = time.perf_counter() - started
+        self.pending = _PendingRound(job, started_step, apply_step, outcome, blocking)
+
+    def _apply(self, global_step: int) -> CIRound:
+        """Wait for the pending round, load its gate, and record it."""
+        pending, self.pending = self.pending, None
+        assert pending is not None
+        waited = time.perf_counter()
+        outcome = pending.outcome.get()
+        blocking = pending.blocking_seconds + (time.perf_counter() - waited)
+        self.gate.load_state_dict(outcome.gate_state)
+        result = outcome.result
         same = self.last_result is not None and np.array_equal(
             self.last_result.causal, result.causal
         )
         self.stable_rounds = self.stable_rounds + 1 if same else 1
         self.last_result = result
-        self.next_round_step = global_step + cfg.ci_every
+        self.next_round_step = pending.started_step + self.config.ci_every
         record = CIRound(
             round=len(self.rounds) + 1,
-            global_step=global_step,
-            pool_episodes=len(self.pool),
+            global_step=pending.started_step,
+            pool_episodes=len(pending.job.pool.lengths),
             observed=len(result.observed),
             interventions=result.num_interventions,
             eliminated=len(result.eliminated),
             causal=len(result.causal),
-            seconds=time.perf_counter() - started,
-            gate_accuracy=fit.accuracy,
+            seconds=outcome.seconds,
+            gate_accuracy=outcome.gate_accuracy,
+            applied_step=global_step,
+            blocking_seconds=blocking,
         )
         self.rounds.append(record)
         for item in result.interventions:
@@ -173,6 +311,13 @@ class CausalInferenceLoop:
                 }
             )
         return record
+
+    def close(self) -> None:
+        """Stop the worker process (a round in flight is dropped; checkpoints hold its inputs)."""
+        if self._workers is not None:
+            self._workers.terminate()
+            self._workers.join()
+            self._workers = None
 
     def describe_causal(self) -> list[int]:
         """The causal observations of the last round, as the index of the one-hot entry when
@@ -197,6 +342,7 @@ class CausalInferenceLoop:
             "causal_observations": self.describe_causal(),
             "ci_wall_clock_s": round(sum(r.seconds for r in self.rounds), 3),
             "ci_round_seconds": [round(r.seconds, 3) for r in self.rounds],
+            "ci_blocking_s": round(sum(r.blocking_seconds for r in self.rounds), 3),
         }
 
     # ------------------------------------------------------------------ checkpoints
@@ -209,10 +355,7 @@ class CausalInferenceLoop:
             "pool": None
             if arrays is None
             else {
-                "codes": torch.as_tensor(arrays.codes),
-                "actions": torch.as_tensor(arrays.actions),
-                "rewards": torch.as_tensor(arrays.rewards),
-                "lengths": torch.as_tensor(arrays.lengths),
+                **_arrays_to_tensors(arrays),
                 "causal": [torch.as_tensor(e.causal) for e in episodes] if labelled else None,
             },
             "observations": {int(c): torch.as_tensor(o) for c, o in self.pool.observations.items()},
@@ -231,6 +374,14 @@ class CausalInferenceLoop:
             else torch.as_tensor(self.last_result.observed),
             "stable_rounds": self.stable_rounds,
             "next_round_step": self.next_round_step,
+            # a round in flight is saved as its inputs; the resumed run computes it again
+            "round_in_flight": None
+            if self.pending is None
+            else {
+                "started_step": self.pending.started_step,
+                "apply_step": self.pending.apply_step,
+                "pool": _arrays_to_tensors(self.pending.job.pool),
+            },
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -262,3 +413,18 @@ class CausalInferenceLoop:
             )
         self.stable_rounds = state["stable_rounds"]
         self.next_round_step = state["next_round_step"]
+        pending = state["round_in_flight"]
+        if pending is not None:
+            pool = PoolArrays(**{k: v.numpy() for k, v in pending["pool"].items()})
+            codes = np.unique(pool.codes[pool.codes >= 0])
+            job = self._job(pool, {int(c): self.pool.observations[int(c)] for c in codes})
+            self._submit(job, pending["started_step"], pending["apply_step"])
+
+
+def _arrays_to_tensors(arrays: PoolArrays) -> dict[str, torch.Tensor]:
+    return {
+        "codes": torch.as_tensor(arrays.codes),
+        "actions": torch.as_tensor(arrays.actions),
+        "rewards": torch.as_tensor(arrays.rewards),
+        "lengths": torch.as_tensor(arrays.lengths),
+    }

@@ -31,20 +31,23 @@ moments) but is off by default: short fine-tunes add arm-to-arm noise of the siz
 effects sought.
 
 Estimator. The per-transition error is the L1 distance of Eq. 9 between the predicted
-distribution and the observed outcome, 2·(1 − p(observed)) / 2 = 1 − p(observed), plus
-|r̂ − r| / max|r| for the reward. For an intervention S with eliminated set O^w:
+distribution and the observed outcome, 2·(1 − p(observed)) / 2 = 1 − p(observed), plus |r̂ −
+r| / max|r| for the reward. For an intervention S with eliminated set O^w:
 
     D_e(S) = Σ_t  1[h_{t-1} contains an observation in S] · (err_{S∪O^w}(t) − err_{O^w}(t))
-    ATE(S) = mean of D_e(S) over held-out episodes e whose history contains S somewhere
+    ATE(S) = mean − 2·SE of D_e(S) over the n held-out episodes whose history contains S
 
 i.e. the extra prediction error per episode (Eq. 4 sums over t) that the intervention causes
-where it applies (Prop. 2 integrates over histories that contain O^i). The two parts of the
-dynamics error are measured separately and the larger counts: the next-observation part as
-is, the reward part divided by the mean reward per episode (at least REWARD_SCALE_FLOOR), so
-that what decides a sparse reward is not diluted below ξ by the many unrewarded episodes.
-The control arm masks O^w only, so the ATE is the effect of S *given* the eliminated set,
-which is what the sequential elimination of the search needs; the environment's own noise,
-and whatever masking O^w costs, hit the control and the intervened arm alike and cancel.
+where it applies (Prop. 2 integrates over histories that contain O^i), reported at the lower
+end of a one-sided confidence interval (SE = standard deviation / √n; `confidence_z`): an
+effect must be shared by the episodes, not carried by a few of them, to cross ξ. The two
+parts of the dynamics error are measured separately and the larger counts: the next-
+observation part as is, the reward part divided by the mean reward per episode (at least
+REWARD_SCALE_FLOOR), so that what decides a sparse reward is not diluted below ξ by the many
+unrewarded episodes. The control arm masks O^w only, so the ATE is the effect of S *given*
+the eliminated set, which is what the sequential elimination of the search needs; the
+environment's own noise, and whatever masking O^w costs, hit the control and the intervened
+arm alike and cancel.
 
 Known limits (see the issues): with coarse parts, the per-episode ATE is averaged over almost
 every episode, which dilutes a rare cause's effect; and an observation that the *policy* makes
@@ -87,6 +90,8 @@ class PredictorConfig:
     """Decoupled weight decay of the code embeddings: an observation the predictor does not
     need decays to the zero vector, which is exactly what masking puts in its place."""
     holdout_fraction: float = 0.25
+    confidence_z: float = 2.0
+    """The ATE is reported as mean − confidence_z · standard error over held-out episodes."""
     max_classes: int = 1024
     seed: int = 0
 
@@ -157,7 +162,15 @@ class BatchedPredictor(nn.Module):
         d, h = config.embed_dim, config.hidden_size
         self.target, self.num_actions = config.target, num_actions
         extra = num_actions if config.target == "dynamics" else d
-        out = num_classes + 1 if config.target == "dynamics" else num_actions
+        categories = num_classes if config.target == "dynamics" else num_actions
+        # The categorical head is padded to a multiple of 16 logits, the padding pinned at
+        # -1e4 (probability exactly 0 in float32): torch's CPU log-softmax is ~10x slower on a
+        # width like 15 than on 16, and it was the largest cost of a CI round.
+        self.num_logits = -(-categories // 16) * 16
+        offset = torch.zeros(self.num_logits)
+        offset[categories:] = -1e4
+        self.register_buffer("logit_offset", offset)
+        out = self.num_logits + (1 if config.target == "dynamics" else 0)
         self.embed = nn.Parameter(torch.zeros(num_models, num_codes, d))
         self.mask_embed = nn.Parameter(torch.zeros(num_models, num_codes, d))
         self.step_embed = nn.Parameter(torch.zeros(num_models, max_steps, d))
@@ -171,6 +184,8 @@ class BatchedPredictor(nn.Module):
         clone = BatchedPredictor.__new__(BatchedPredictor)
         nn.Module.__init__(clone)
         clone.target, clone.num_actions = self.target, self.num_actions
+        clone.num_logits = self.num_logits
+        clone.register_buffer("logit_offset", self.logit_offset)
         for name in ("embed", "mask_embed", "step_embed", "w1", "b1", "w2", "b2"):
             value = getattr(self, name).detach()[:1]
             setattr(clone, name, nn.Parameter(value.repeat(num_models, *[1] * (value.dim() - 1))))
@@ -243,7 +258,7 @@ class BatchedPredictor(nn.Module):
         out = self(ids, masked[:, :, : steps + 1], masked_codes, actions, valid)  # (K, n, out)
         num_models = out.shape[0]
         if self.target == "dynamics":
-            logits, reward = out[..., :-1], out[..., -1]
+            logits, reward = out[..., :-1] + self.logit_offset, out[..., -1]
             target = data.next_class[episodes, :steps][valid].expand(num_models, -1)
             true_reward = data.rewards[episodes, :steps][valid].unsqueeze(0)
             nll = nn.functional.cross_entropy(
@@ -254,7 +269,7 @@ class BatchedPredictor(nn.Module):
         else:
             target = actions[valid].expand(num_models, -1)
             nll = nn.functional.cross_entropy(
-                out.flatten(0, 1), target.flatten(), reduction="none"
+                (out + self.logit_offset).flatten(0, 1), target.flatten(), reduction="none"
             ).view(num_models, -1)
             flat_errors = (1 - torch.exp(-nll)).unsqueeze(0)
             per_step = nll
@@ -405,14 +420,20 @@ class EffectEstimator:
         seen = torch.cummax(tested[:, :, :steps].int(), dim=2).values.bool()
         applies = torch.cat((torch.zeros_like(seen[:, :, :1]), seen[:, :, :-1]), dim=2)
         applies &= self.data.valid[test, :steps].unsqueeze(0)
-        extra = ((errors - control_errors) * applies).sum(dim=-1)  # (C, K, E_test)
-        episodes_hit = applies.any(dim=2).sum(dim=1)
-        per_component = extra.sum(dim=-1) / episodes_hit.clamp(min=1)  # (C, K)
+        extra = ((errors - control_errors) * applies).sum(dim=-1)  # (C, K, E_test): D_e
         if self.config.target == "dynamics":
             # The reward part is measured against how much reward there is to predict: a sparse
             # reward (2% of maze episodes early on) would otherwise dilute the effect of what
             # decides it below any threshold, next to observations that matter every step. The
             # floor keeps a nearly reward-free pool from amplifying noise without bound.
             scale = self.data.rewards[test].abs().sum(dim=1).mean()
-            per_component[1] /= max(float(scale), REWARD_SCALE_FLOOR)
-        return per_component.max(dim=0).values.numpy()
+            extra[1] /= max(float(scale), REWARD_SCALE_FLOOR)
+        hit = applies.any(dim=2)  # (K, E_test): episodes where the intervention applies
+        count = hit.sum(dim=1).clamp(min=2)
+        mean = extra.sum(dim=-1) / count  # (C, K)
+        # The lower end of a one-sided confidence interval over the held-out episodes: an
+        # effect counts only where the episodes agree on it, not where a few histories (or the
+        # predictor's error on them) carry the mean across ξ.
+        variance = ((extra - mean.unsqueeze(-1)) * hit).pow(2).sum(dim=-1) / (count - 1)
+        lower = mean - self.config.confidence_z * (variance / count).sqrt()
+        return lower.max(dim=0).values.numpy()

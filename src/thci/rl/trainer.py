@@ -41,7 +41,13 @@ from thci.rl.rollout import RolloutCollector
 from thci.rl.tracking import SolveTracker
 
 # summary.json fields that depend on the machine's speed, not on the seed.
-TIMING_FIELDS = ("wall_clock_s", "steps_per_second", "ci_wall_clock_s", "ci_round_seconds")
+TIMING_FIELDS = (
+    "wall_clock_s",
+    "steps_per_second",
+    "ci_wall_clock_s",
+    "ci_round_seconds",
+    "ci_blocking_s",
+)
 
 
 def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
@@ -252,15 +258,17 @@ def _train(
             update += 1
             if ci is not None:  # the CI loop runs on the pool between RL updates (Fig. 3)
                 ci.observe(rollout)
-                if ci.due(global_step):
-                    record = ci.run_round(global_step)
+                record = ci.step(global_step)
+                if record is not None:
                     write_ci_rounds(run, ci)
                     for key in ("interventions", "observed", "causal", "seconds"):
                         writer.add_scalar(f"ci/{key}", getattr(record, key), global_step)
+                    writer.add_scalar("ci/blocking_seconds", record.blocking_seconds, global_step)
                     tqdm.write(
-                        f"CI round {record.round} at {global_step} steps: |Ô|={record.observed}, "
-                        f"{record.interventions} interventions, keeps {ci.describe_causal()}, "
-                        f"{record.seconds:.1f}s"
+                        f"CI round {record.round} (pool at {record.global_step} steps, gate from "
+                        f"{global_step}): |Ô|={record.observed}, {record.interventions} "
+                        f"interventions, keeps {ci.describe_causal()}, {record.seconds:.1f}s, "
+                        f"RL waited {record.blocking_seconds:.1f}s"
                     )
 
             elapsed = wall_clock_before + time.perf_counter() - started
@@ -293,6 +301,8 @@ def _train(
     finally:
         bar.close()
         writer.close()
+        if ci is not None:
+            ci.close()
     save_checkpoint()
 
     wall_clock = wall_clock_before + time.perf_counter() - started
