@@ -104,7 +104,7 @@ class TrainConfig:
     # Counterfactual inference (methods t-hci and hci)
     ci_every: int = 8192
     """Env steps between CI rounds (the first runs once ci_min_episodes episodes are pooled)."""
-    ci_lag: int = 8192
+    ci_lag: int = 2048
     """Env steps from a round's start (on the pool as it was) to the update at which its gate
     takes effect; the RL loop waits only if the round has not finished by then."""
     ci_async: bool = True
