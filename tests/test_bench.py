@@ -69,7 +69,7 @@ def test_killed_grid_resumes_from_checkpoint(tmp_path):
     grid_file = tmp_path / "grid.toml"
     grid_file.write_text(
         'envs = ["thci/PaperMaze-L1-v0"]\nmethods = ["lstm"]\nseeds = [1, 2]\n'
-        "[train]\ntotal_steps = 2048\nnum_envs = 4\nnum_steps = 32\nnum_minibatches = 4\n"
+        "[train]\ntotal_steps = 1024\nnum_envs = 4\nnum_steps = 32\nnum_minibatches = 4\n"
         "checkpoint_every = 2\n"
     )
     root = tmp_path / "root"
@@ -97,8 +97,8 @@ def test_killed_grid_resumes_from_checkpoint(tmp_path):
     # would differ had it started over) and went on to the full budget.
     rows_after = (second / "metrics.csv").read_text().splitlines()
     assert rows_after[: checkpoint_update + 1] == rows_before
-    assert len(rows_after) == 1 + 2048 // 128
-    assert json.loads((second / "summary.json").read_text())["total_env_steps"] == 2048
+    assert len(rows_after) == 1 + 1024 // 128
+    assert json.loads((second / "summary.json").read_text())["total_env_steps"] == 1024
 
 
 def test_method_not_in_this_install_is_noted_and_left_out(tmp_path, monkeypatch, capsys):
@@ -124,6 +124,8 @@ def test_presets_name_the_papers_methods_and_are_valid():
     assert len(quick) < len(load_grid("paper-maze").configs())
     level3 = [c for c in quick if c.env == "thci/PaperMaze-L3-v0"]
     assert all(c.exploration == "count" and c.count_key == "agent_pos" for c in level3)
+    budgets = {c.method: c.total_steps for c in level3}
+    assert budgets["lstm"] == 300_000 and budgets["wmg"] == 5_000  # the method's budget wins
 
 
 @pytest.mark.parametrize(
@@ -136,6 +138,7 @@ def test_presets_name_the_papers_methods_and_are_valid():
         (["--grid", "{dir}/env.toml"], "unknown environment id"),
         (["--grid", "{dir}/key.toml"], "unknown settings ['total_step']"),
         (["--grid", "{dir}/seed.toml"], "'seeds' must be a non-empty list of int"),
+        (["--grid", "{dir}/over.toml"], "method_overrides names 'gru', which is not in the grid"),
     ],
 )
 def test_bad_bench_input_is_one_line(tmp_path, capsys, argv, fragment):
@@ -146,6 +149,9 @@ def test_bad_bench_input_is_one_line(tmp_path, capsys, argv, fragment):
         base + 'envs = ["thci/PaperMaze-L1-v0"]\n[train]\ntotal_step = 5\n'
     )
     (tmp_path / "seed.toml").write_text('envs = ["x"]\nmethods = ["lstm"]\nseeds = []\n')
+    (tmp_path / "over.toml").write_text(
+        base + 'envs = ["x"]\n[method_overrides.gru]\ntotal_steps = 5\n'
+    )
     argv = [a.replace("{dir}", str(tmp_path)) for a in argv]
     with pytest.raises(SystemExit) as exc:
         main(["bench", "--root", str(tmp_path / "root"), *argv])

@@ -182,9 +182,15 @@ def _execute(
     bar = tqdm(
         total=sum(r.config.total_steps for r in runs), unit="step", dynamic_ncols=True, desc="grid"
     )
+    pending = set(futures)
     try:
-        pending = set(futures)
         while pending:
+            bar.n = sum(
+                r.config.total_steps if r.name in finished else _steps_done(r.run_dir) for r in runs
+            )
+            bar.set_postfix_str(
+                f"{len(finished)}/{len(runs)} runs done, {len(result.failed)} failed"
+            )
             done, pending = concurrent.futures.wait(pending, timeout=POLL_SECONDS)
             for future in done:
                 run = futures[future]
@@ -196,12 +202,8 @@ def _execute(
                 else:
                     result.failed[run.name] = str(error)
                     tqdm.write(f"{run.name}: FAILED: {error} (log: {_log_path(run)})")
-            bar.n = sum(
-                r.config.total_steps if r.name in finished else _steps_done(r.run_dir) for r in runs
-            )
-            bar.set_postfix_str(
-                f"{len(finished)}/{len(runs)} runs done, {len(result.failed)} failed"
-            )
+        bar.n = bar.total
+        bar.set_postfix_str(f"{len(runs)} runs done, {len(result.failed)} failed")
     except KeyboardInterrupt:
         for future in futures:
             future.cancel()

@@ -1,9 +1,10 @@
 """Experiment grids: which (env, method, algo, seed) runs `thci bench` trains, with what settings.
 
 A grid is the cross product ``envs × methods × algos × seeds``. Every run of it is an ordinary
-`thci train` run: ``train`` holds TrainConfig fields shared by all runs and ``env_overrides``
-the fields one environment needs on top (e.g. exploration for Maze levels 3-4). The same
-structure is read from a TOML or YAML file::
+`thci train` run: ``train`` holds TrainConfig fields shared by all runs, ``env_overrides`` the
+fields one environment needs on top (e.g. exploration for Maze levels 3-4) and
+``method_overrides`` those of one method (they win over the env's, e.g. a smaller budget for a
+slow method). The same structure is read from a TOML or YAML file::
 
     envs = ["thci/PaperMaze-L1-v0", "thci/PaperMaze-L2-v0"]
     methods = ["lstm", "t-hci"]
@@ -17,11 +18,15 @@ structure is read from a TOML or YAML file::
     [env_overrides."thci/PaperMaze-L2-v0"]
     total_steps = 200000
 
+    [method_overrides.t-hci]
+    ci_every = 4096
+
 The presets reproduce the paper's experiments: ``paper-maze`` and ``paper-babyai`` (Fig. 5,
 Fig. 7, Table 1: LSTM, GRU, NM, WMG, HCI, T-HCI on levels 1-4, 10 trials each) and
 ``ablation`` (Table 2, Fig. 8, Fig. 9: T-HCI, SAI, HAI, Oracle on level 3). Each has a
 ``-quick`` variant with fewer seeds and smaller budgets that finishes in under an hour on two
-cores.
+cores: there the slow baselines (NM ~130, WMG ~30 env steps/s on this project's two-core
+machine, vs ~1700 for LSTM) get small budgets, so their cells read "> budget".
 """
 
 from __future__ import annotations
@@ -45,6 +50,9 @@ PAPER_BABYAI = tuple(f"thci/BabyAI-L{k}-v0" for k in range(1, 5))
 PAPER_METHODS = ("lstm", "gru", "nm", "wmg", "hci", "t-hci")  # Fig. 5, Table 1
 ABLATION_METHODS = ("t-hci", "sai", "hai", "oracle")  # Table 2, Fig. 8, Fig. 9
 PAPER_METHOD_NAMES = frozenset(PAPER_METHODS + ABLATION_METHODS)
+
+# Budgets that keep the -quick presets under an hour on two cores (see the module docstring).
+QUICK_SLOW_METHODS = {"nm": {"total_steps": 20_000}, "wmg": {"total_steps": 5_000}}
 
 # Maze levels 3-4 are rewarded in ~0.5% of random episodes: without a count bonus on the
 # agent's position no method finds the goals within the budget (README, "exploration").
@@ -74,6 +82,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "seeds": [1, 2],
         "train": {"stop_on_solve": True},
         "env_overrides": _budgets(PAPER_MAZE, 60_000, 300_000, explore=True),
+        "method_overrides": QUICK_SLOW_METHODS,
     },
     "paper-babyai": {
         "envs": list(PAPER_BABYAI),
@@ -88,13 +97,17 @@ PRESETS: dict[str, dict[str, Any]] = {
         "seeds": [1],
         "train": {"stop_on_solve": True, "exploration": "count", "count_key": "agent_pos"},
         "env_overrides": _budgets(PAPER_BABYAI, 100_000, 100_000, explore=False),
+        "method_overrides": QUICK_SLOW_METHODS,
     },
     "ablation": {
         "envs": [PAPER_MAZE[2], PAPER_BABYAI[2]],
         "methods": list(ABLATION_METHODS),
         "seeds": list(range(1, 11)),
         "train": {"stop_on_solve": True, **EXPLORE_POSITIONS},
-        "env_overrides": {PAPER_MAZE[2]: {"total_steps": 1_000_000}},
+        "env_overrides": {
+            PAPER_MAZE[2]: {"total_steps": 1_000_000},
+            PAPER_BABYAI[2]: {"total_steps": 3_000_000},
+        },
     },
     "ablation-quick": {
         "envs": [PAPER_MAZE[2]],
@@ -116,6 +129,7 @@ class Grid:
     seeds: tuple[int, ...]
     train: dict[str, Any]
     env_overrides: dict[str, dict[str, Any]]
+    method_overrides: dict[str, dict[str, Any]]
 
     def configs(self) -> list[TrainConfig]:
         """One TrainConfig per run, in grid order (run_dir not set yet)."""
@@ -126,7 +140,11 @@ class Grid:
                 algo=algo,  # type: ignore[arg-type]
                 seed=seed,
                 progress=False,
-                **{**self.train, **self.env_overrides.get(env, {})},
+                **{
+                    **self.train,
+                    **self.env_overrides.get(env, {}),
+                    **self.method_overrides.get(method, {}),
+                },
             )
             for env, method, algo, seed in itertools.product(
                 self.envs, self.methods, self.algos, self.seeds
@@ -141,7 +159,7 @@ def available_methods() -> tuple[str, ...]:
 
 def grid_from_dict(name: str, data: dict[str, Any]) -> Grid:
     """Validate a grid description (a preset or a parsed file); ThciError on any mistake."""
-    known = {"envs", "methods", "algos", "seeds", "train", "env_overrides"}
+    known = {"envs", "methods", "algos", "seeds", "train", "env_overrides", "method_overrides"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise ThciError(f"grid {name}: unknown keys {unknown}; a grid has {sorted(known)}")
@@ -159,12 +177,10 @@ def grid_from_dict(name: str, data: dict[str, Any]) -> Grid:
     if bad_algos:
         raise ThciError(f"grid {name}: unknown algos {bad_algos}; choose from {get_args(Algo)}")
     train = _check_fields(name, "train", data.get("train", {}))
-    overrides = data.get("env_overrides", {})
-    if not isinstance(overrides, dict):
-        raise ThciError(f"grid {name}: 'env_overrides' must map env ids to settings")
-    for env in overrides:
-        if env not in lists["envs"]:
-            raise ThciError(f"grid {name}: env_overrides names {env!r}, which is not in envs")
+    overrides = {
+        key: _check_overrides(name, key, data.get(key, {}), lists[list_key])
+        for key, list_key in (("env_overrides", "envs"), ("method_overrides", "methods"))
+    }
     return Grid(
         name=name,
         envs=lists["envs"],
@@ -172,11 +188,23 @@ def grid_from_dict(name: str, data: dict[str, Any]) -> Grid:
         algos=lists["algos"],
         seeds=lists["seeds"],
         train=train,
-        env_overrides={
-            env: _check_fields(name, f"env_overrides.{env}", fields)
-            for env, fields in overrides.items()
-        },
+        env_overrides=overrides["env_overrides"],
+        method_overrides=overrides["method_overrides"],
     )
+
+
+def _check_overrides(
+    name: str, key: str, overrides: Any, names: tuple[str, ...]
+) -> dict[str, dict[str, Any]]:
+    """`key` (env_overrides or method_overrides): settings per name, each name in `names`."""
+    if not isinstance(overrides, dict):
+        raise ThciError(f"grid {name}: '{key}' must be a table of settings per name")
+    for which in overrides:
+        if which not in names:
+            raise ThciError(f"grid {name}: {key} names {which!r}, which is not in the grid")
+    return {
+        which: _check_fields(name, f"{key}.{which}", fields) for which, fields in overrides.items()
+    }
 
 
 def _check_fields(name: str, where: str, fields: Any) -> dict[str, Any]:
