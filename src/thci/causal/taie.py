@@ -95,7 +95,9 @@ def measure_taie(
     SAI; None when the environment gives no labels."""
     envs = make_vector_env(env_id, min(16, episodes), vectorization)
     try:
-        collector = RolloutCollector(envs, agent, num_steps=128, gamma=0.99, greedy=greedy)
+        # Only episodes that start and end inside one rollout count: 512 steps hold at least one
+        # of every built-in level (BabyAI-L4 episodes last up to 250 steps), so this terminates.
+        collector = RolloutCollector(envs, agent, num_steps=512, gamma=0.99, greedy=greedy)
         collector.reset(seed)
         errors: list[torch.Tensor] = []
         while sum(len(e) for e in errors) < episodes:
