@@ -52,7 +52,7 @@ ABLATION_METHODS = ("t-hci", "sai", "hai", "oracle")  # Table 2, Fig. 8, Fig. 9
 PAPER_METHOD_NAMES = frozenset(PAPER_METHODS + ABLATION_METHODS)
 
 # Budgets that keep the -quick presets under an hour on two cores (see the module docstring).
-QUICK_SLOW_METHODS = {"nm": {"total_steps": 20_000}, "wmg": {"total_steps": 5_000}}
+QUICK_SLOW_METHODS = {"nm": {"total_steps": 15_000}, "wmg": {"total_steps": 4_000}}
 
 # Maze levels 3-4 are rewarded in ~0.5% of random episodes: without a count bonus on the
 # agent's position no method finds the goals within the budget (README, "exploration").
