@@ -24,7 +24,7 @@ TINY = {
     "seeds": [1, 2],
     "train": {"total_steps": 256, "num_envs": 4, "num_steps": 32, "num_minibatches": 4},
 }
-WORKERS = min(2, len(os.sched_getaffinity(0)))
+WORKERS = min(2, bench.available_cores())
 
 
 def summaries(root: Path) -> dict[str, dict]:

@@ -128,7 +128,14 @@ def _action(config: TrainConfig) -> Literal["skip", "resume", "start"]:
 
 def default_workers(configs: list[TrainConfig]) -> int:
     """Runs at a time such that workers × torch threads ≤ the cores this process may use."""
-    return max(1, len(os.sched_getaffinity(0)) // _threads_per_run(configs))
+    return max(1, available_cores() // _threads_per_run(configs))
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has one, e.g. Linux)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 def _threads_per_run(configs: list[TrainConfig]) -> int:
@@ -155,7 +162,7 @@ def run_bench(
         workers = default_workers([r.config for r in todo])
     if workers <= 0:
         raise ThciError(f"--workers must be a positive integer, got {workers}")
-    cores = len(os.sched_getaffinity(0))
+    cores = available_cores()
     if backend == "local" and workers * threads > cores:
         raise ThciError(
             f"--workers {workers} × {threads} torch threads per run exceeds this machine's "
