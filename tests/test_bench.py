@@ -139,6 +139,7 @@ def test_presets_name_the_papers_methods_and_are_valid():
         (["--grid", "{dir}/key.toml"], "unknown settings ['total_step']"),
         (["--grid", "{dir}/seed.toml"], "'seeds' must be a non-empty list of int"),
         (["--grid", "{dir}/over.toml"], "method_overrides names 'gru', which is not in the grid"),
+        (["--grid", "{dir}/ok.toml", "--workers", "999"], "exceeds this machine's"),
     ],
 )
 def test_bad_bench_input_is_one_line(tmp_path, capsys, argv, fragment):
@@ -149,6 +150,7 @@ def test_bad_bench_input_is_one_line(tmp_path, capsys, argv, fragment):
         base + 'envs = ["thci/PaperMaze-L1-v0"]\n[train]\ntotal_step = 5\n'
     )
     (tmp_path / "seed.toml").write_text('envs = ["x"]\nmethods = ["lstm"]\nseeds = []\n')
+    (tmp_path / "ok.toml").write_text(base + 'envs = ["thci/PaperMaze-L1-v0"]\n')
     (tmp_path / "over.toml").write_text(
         base + 'envs = ["x"]\n[method_overrides.gru]\ntotal_steps = 5\n'
     )
