@@ -232,11 +232,13 @@ class CausalInferenceLoop:
             and self.stable_rounds < 2
         )
 
-    def _job(self, pool: PoolArrays, observations: dict[int, np.ndarray]) -> CIJob:
+    def make_job(self, pool: PoolArrays) -> CIJob:
+        """The CI round of the next round's index on `pool` (episodes of this run's pool)."""
         cfg = self.config
+        codes = np.unique(pool.codes[pool.codes >= 0]).tolist()
         return CIJob(
             pool=pool,
-            observations=observations,
+            observations={c: self.pool.observations[c] for c in codes},
             gate_state={k: v.clone() for k, v in self.gate.state_dict().items()},
             observation_size=int(np.prod(self.observation_space.shape)),
             num_actions=self.num_actions,
@@ -253,9 +255,7 @@ class CausalInferenceLoop:
         )
 
     def _start(self, global_step: int) -> None:
-        pool = self.pool.arrays()
-        codes = np.unique(pool.codes[pool.codes >= 0])
-        job = self._job(pool, {int(c): self.pool.observations[int(c)] for c in codes})
+        job = self.make_job(self.pool.arrays())
         self._submit(job, global_step, global_step + self.config.ci_lag)
 
     def _submit(self, job: CIJob, started_step: int, apply_step: int) -> None:
@@ -304,7 +304,7 @@ class CausalInferenceLoop:
             self.intervention_log.append(
                 {
                     "round": record.round,
-                    "observations": self._describe(item.codes),
+                    "observations": self.describe(item.codes),
                     "ate": round(item.ate, 5),
                     "kind": item.kind,
                     "batch_seconds": round(item.seconds, 4),
@@ -322,9 +322,10 @@ class CausalInferenceLoop:
     def describe_causal(self) -> list[int]:
         """The causal observations of the last round, as the index of the one-hot entry when
         observations are one-hot (e.g. the maze's cell codes), else as discretizer codes."""
-        return [] if self.last_result is None else self._describe(self.last_result.causal)
+        return [] if self.last_result is None else self.describe(self.last_result.causal)
 
-    def _describe(self, codes) -> list[int]:
+    def describe(self, codes) -> list[int]:
+        """Codes as the index of the one-hot entry when observations are one-hot, else as is."""
         described = []
         for code in codes:
             obs = self.pool.observations[int(code)]
@@ -416,9 +417,7 @@ class CausalInferenceLoop:
         pending = state["round_in_flight"]
         if pending is not None:
             pool = PoolArrays(**{k: v.numpy() for k, v in pending["pool"].items()})
-            codes = np.unique(pool.codes[pool.codes >= 0])
-            job = self._job(pool, {int(c): self.pool.observations[int(c)] for c in codes})
-            self._submit(job, pending["started_step"], pending["apply_step"])
+            self._submit(self.make_job(pool), pending["started_step"], pending["apply_step"])
 
 
 def _arrays_to_tensors(arrays: PoolArrays) -> dict[str, torch.Tensor]:

@@ -1,0 +1,81 @@
+"""Wall-clock of one CI round on real replay pools, measured alone on one thread.
+
+A training run's CI rounds share the machine with its RL loop (and, on a busy machine, with
+everything else), so the seconds in its ci_rounds.csv measure the machine as much as the
+round. This benchmark takes the replay pool saved in each run's checkpoint, runs the round
+that run would run (effect predictor fit, T-HCI or HCI search, gate fit: `run_ci_job`) in
+this process with one torch thread, `--repeats` times, and records the median seconds,
+|Ô|, interventions and the causal set found.
+
+    .venv/bin/python benchmarks/ci_rounds.py RUN_DIR [RUN_DIR ...]
+
+Writes benchmarks/results/ci_rounds.json and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from pathlib import Path
+
+import gymnasium as gym
+import torch
+
+from thci.causal.loop import CausalInferenceLoop, run_ci_job
+from thci.envs.factory import make_vector_env
+from thci.experiments.run_dir import RunDirectory
+from thci.rl.trainer import build_agent
+
+RESULTS = Path(__file__).parent / "results"
+
+
+def time_round(run_dir: Path, repeats: int) -> dict:
+    """Median seconds of the run's CI round on the pool of its last checkpoint."""
+    run = RunDirectory(run_dir)
+    config = run.read_config()
+    envs = make_vector_env(config.env, 1)
+    space: gym.Space = envs.single_observation_space
+    agent = build_agent(config, envs)
+    envs.close()
+    assert agent.gate is not None, f"{run_dir} is not a t-hci/hci run"
+    loop = CausalInferenceLoop(config, space, int(envs.single_action_space.n), 1, agent.gate)
+    state = run.load_checkpoint()["ci"]
+    state["round_in_flight"] = None  # only the pool is needed here
+    loop.load_state_dict(state)
+    job = loop.make_job(loop.pool.arrays())
+    outcomes = [run_ci_job(job) for _ in range(repeats)]
+    result = outcomes[-1].result
+    return {
+        "run": str(run_dir),
+        "env": config.env,
+        "method": config.method,
+        "pool_episodes": len(job.pool.lengths),
+        "observed": len(result.observed),
+        "interventions": result.num_interventions,
+        "kept": loop.describe(result.causal),
+        "seconds_median": round(statistics.median(o.seconds for o in outcomes), 3),
+        "seconds_all": [round(o.seconds, 3) for o in outcomes],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dirs", nargs="+", type=Path)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    rows = [time_round(d, args.repeats) for d in args.run_dirs]
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "ci_rounds.json").write_text(json.dumps(rows, indent=2) + "\n")
+    print("| run | |Ô| | interventions | kept | seconds (median) |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {Path(r['run']).name} | {r['observed']} | {r['interventions']} | {r['kept']} "
+            f"| {r['seconds_median']} |"
+        )
+
+
+if __name__ == "__main__":
+    main()
