@@ -168,9 +168,6 @@ def run_bench(
             f"--workers {workers} × {threads} torch threads per run exceeds this machine's "
             f"{cores} cores; pass --workers {max(1, cores // threads)} or fewer"
         )
-    for run in todo:
-        if run.action == "start" and run.run_dir.exists():
-            shutil.rmtree(run.run_dir)  # killed before its first checkpoint: nothing to keep
     (root / "logs").mkdir(parents=True, exist_ok=True)
     with _executor(backend, workers, threads) as submit:
         _execute(runs, todo, submit, result)
@@ -331,6 +328,10 @@ def train_in_worker(config_data: dict[str, Any], action: str) -> str | None:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             return "another process is training this run"
+        # Only under the lock: a run killed before its first checkpoint has nothing to keep,
+        # but a run directory without one may also belong to a run still in progress.
+        if action == "start" and config.run_dir.exists():
+            shutil.rmtree(config.run_dir)
         with _output_to(root / "logs" / f"{name}.log"):
             try:
                 train(config)
