@@ -34,6 +34,7 @@ from thci.causal.search import CIResult, hci, t_hci
 from thci.config import TrainConfig
 from thci.rl.episodes import EpisodeAssembler
 from thci.rl.rollout import Rollout
+from thci.workers import die_with_parent
 
 
 @dataclass(frozen=True)
@@ -263,7 +264,8 @@ class CausalInferenceLoop:
         outcome: _Outcome
         if self.config.ci_async:
             if self._workers is None:  # spawn: a fresh interpreter, safe with torch threads
-                self._workers = multiprocessing.get_context("spawn").Pool(1)
+                context = multiprocessing.get_context("spawn")
+                self._workers = context.Pool(1, initializer=die_with_parent)
             outcome = self._workers.apply_async(run_ci_job, (job,))
         else:
             started = time.perf_counter()

@@ -37,6 +37,7 @@ from thci.envs.factory import resolve_env_spec
 from thci.errors import ThciError
 from thci.experiments.presets import PAPER_METHOD_NAMES, Grid, available_methods
 from thci.experiments.run_dir import RunDirectory
+from thci.workers import die_with_parent
 
 Backend = Literal["local", "ray"]
 POLL_SECONDS = 1.0
@@ -252,7 +253,9 @@ def _executor(
     """A function that submits one run to `backend` and returns its future."""
     if backend == "local":
         pool = concurrent.futures.ProcessPoolExecutor(
-            max_workers=workers, mp_context=multiprocessing.get_context("spawn")
+            max_workers=workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=die_with_parent,
         )
         try:
             yield lambda run: pool.submit(train_in_worker, run.config.to_dict(), run.action)
