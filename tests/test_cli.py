@@ -288,3 +288,12 @@ def test_count_exploration_adds_bonus_and_resumes_to_the_same_result(tmp_path):
     plain = train(tmp_path, "plain", "--total-steps", "4096", "--seed", "2")
     assert without_timing(reference) != without_timing(plain)  # the bonus changes learning
     assert_stop_and_resume_matches(tmp_path, reference, args)
+
+
+def test_atomic_writes_get_the_mode_of_a_plain_open(tmp_path):
+    from thci.experiments.run_dir import atomic_write_bytes
+
+    plain, atomic = tmp_path / "plain", tmp_path / "atomic"
+    plain.write_bytes(b"x")
+    atomic_write_bytes(atomic, b"x")
+    assert atomic.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777
