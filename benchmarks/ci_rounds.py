@@ -19,28 +19,24 @@ import json
 import statistics
 from pathlib import Path
 
-import gymnasium as gym
 import torch
 
 from thci.causal.loop import CausalInferenceLoop, run_ci_job
-from thci.envs.factory import make_vector_env
-from thci.experiments.run_dir import RunDirectory
-from thci.rl.trainer import build_agent
+from thci.rl.evaluate import load_run
 
 RESULTS = Path(__file__).parent / "results"
 
 
 def time_round(run_dir: Path, repeats: int) -> dict:
     """Median seconds of the run's CI round on the pool of its last checkpoint."""
-    run = RunDirectory(run_dir)
-    config = run.read_config()
-    envs = make_vector_env(config.env, 1)
-    space: gym.Space = envs.single_observation_space
-    agent = build_agent(config, envs)
+    config, envs, agent, checkpoint = load_run(run_dir, 1, seed=0)
     envs.close()
-    assert agent.gate is not None, f"{run_dir} is not a t-hci/hci run"
-    loop = CausalInferenceLoop(config, space, int(envs.single_action_space.n), 1, agent.gate)
-    state = run.load_checkpoint()["ci"]
+    if agent.gate is None:
+        raise SystemExit(f"{run_dir} is not a t-hci/hci run")
+    loop = CausalInferenceLoop(
+        config, envs.single_observation_space, int(envs.single_action_space.n), 1, agent.gate
+    )
+    state = checkpoint["ci"]
     state["round_in_flight"] = None  # only the pool is needed here
     loop.load_state_dict(state)
     job = loop.make_job(loop.pool.arrays())

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from thci.causal.taie import taie_of_rollout
+from thci.causal.taie import observation_weights, taie_of_rollout
 from thci.envs.factory import make_vector_env
 from thci.envs.paper_maze import load_maze_level
 from thci.experiments.run_dir import RunDirectory
@@ -47,8 +47,7 @@ def run_taie(run_dir: Path, episodes: int = 100) -> dict:
     against_labels, against_sufficient = [], []
     while sum(len(t) for t in against_labels) < episodes:
         rollout, _ = collector.collect()
-        keep = agent.gate.keep(rollout.obs)
-        weights = torch.ones(rollout.obs.shape[:2]) if keep is None else keep.float()
+        weights = observation_weights(agent, rollout.obs)
         codes = rollout.obs.argmax(dim=-1)
         for target, out in ((labels, against_labels), (sufficient, against_sufficient)):
             truth = torch.as_tensor(np.isin(codes.numpy(), sorted(target)))

@@ -25,12 +25,11 @@ import torch
 import thci  # noqa: F401  (registers the environments for gym.make)
 from thci.causal.taie import observation_weights
 from thci.config import TrainConfig
-from thci.envs.factory import make_vector_env
 from thci.errors import ThciError
 from thci.experiments.report import env_label
-from thci.experiments.run_dir import RunDirectory, atomic_write_bytes
+from thci.experiments.run_dir import atomic_write_bytes
+from thci.rl.evaluate import load_run
 from thci.rl.rollout import RolloutCollector
-from thci.rl.trainer import build_agent
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -61,20 +60,8 @@ def greedy_trajectory(run_dir: Path, seed: int = 10_000) -> tuple[TrainConfig, T
     get them), then its actions are replayed in a rendering copy of the environment, seeded
     alike, to get the picture and the positions; the two must agree step by step.
     """
-    run = RunDirectory(run_dir)
-    if not run.config_path.is_file():
-        raise ThciError(f"{run_dir} is not a thci run directory: config.json is missing")
-    config = run.read_config()
-    checkpoint = run.load_checkpoint()
-    torch.set_num_threads(config.torch_threads)
-    torch.manual_seed(seed)
-    envs = make_vector_env(config.env, 1, config.vectorization)
+    config, envs, agent, _ = load_run(run_dir, 1, seed)
     try:
-        agent = build_agent(config, envs)
-        try:
-            agent.load_state_dict(checkpoint["agent"])
-        except (KeyError, RuntimeError) as exc:
-            raise ThciError(f"checkpoint does not match the run's config ({exc})") from None
         _, start_info = envs.reset(seed=seed)
         if "agent_pos" not in start_info:
             raise ThciError(

@@ -7,12 +7,40 @@ from typing import Any
 
 import numpy as np
 import torch
+from gymnasium.vector import VectorEnv
 
+from thci.config import TrainConfig
 from thci.envs.factory import make_vector_env
 from thci.errors import ThciError
 from thci.experiments.run_dir import RunDirectory, atomic_write_json
+from thci.rl.agent import ActorCritic
 from thci.rl.rollout import Episode, RolloutCollector
 from thci.rl.trainer import build_agent
+
+
+def load_run(
+    run_dir: Path, num_envs: int, seed: int
+) -> tuple[TrainConfig, VectorEnv, ActorCritic, dict[str, Any]]:
+    """A run's config, `num_envs` fresh environments, its trained agent and its checkpoint.
+
+    Seeds torch with `seed` and uses the run's torch threads; every problem with the directory
+    or the checkpoint is a one-line ThciError. The caller closes the environments.
+    """
+    run = RunDirectory(run_dir)
+    if not run.config_path.is_file():
+        raise ThciError(f"{run_dir} is not a thci run: config.json is missing")
+    config = run.read_config()
+    checkpoint = run.load_checkpoint()
+    torch.set_num_threads(config.torch_threads)
+    torch.manual_seed(seed)
+    envs = make_vector_env(config.env, num_envs, config.vectorization)
+    try:
+        agent = build_agent(config, envs)
+        agent.load_state_dict(checkpoint["agent"])
+    except (KeyError, RuntimeError) as exc:
+        envs.close()
+        raise ThciError(f"checkpoint does not match the run's config ({exc})") from None
+    return config, envs, agent, checkpoint
 
 
 def evaluate(
@@ -27,21 +55,9 @@ def evaluate(
         raise ThciError(f"--episodes must be a positive integer, got {episodes}")
     if not run_dir.is_dir():
         raise ThciError(f"run directory {run_dir} not found")
-    run = RunDirectory(run_dir)
-    if not run.config_path.is_file():
-        raise ThciError(f"{run_dir} is not a thci run: config.json is missing")
-    config = run.read_config()
-    checkpoint = run.load_checkpoint()
-    torch.set_num_threads(config.torch_threads)
-    torch.manual_seed(seed)
     num_envs = min(num_envs, episodes)
-    envs = make_vector_env(config.env, num_envs, config.vectorization)
+    config, envs, agent, checkpoint = load_run(run_dir, num_envs, seed)
     try:
-        agent = build_agent(config, envs)
-        try:
-            agent.load_state_dict(checkpoint["agent"])
-        except (KeyError, RuntimeError) as exc:
-            raise ThciError(f"checkpoint does not match the run's config ({exc})") from None
         collector = RolloutCollector(
             envs,
             agent,
@@ -78,5 +94,5 @@ def evaluate(
         "mean_length": float(np.mean([e.length for e in finished])),
         "checkpoint_update": checkpoint["update"],
     }
-    atomic_write_json(run.path / "evaluation.json", result)
+    atomic_write_json(run_dir / "evaluation.json", result)
     return result
