@@ -7,7 +7,12 @@ import pytest
 import torch
 
 from thci.causal.gate import Gate
-from thci.causal.predictor import BatchedPredictor, EffectEstimator, PredictorConfig
+from thci.causal.predictor import (
+    BatchedPredictor,
+    EffectEstimate,
+    EffectEstimator,
+    PredictorConfig,
+)
 from thci.causal.replay import PoolEpisode, ReplayPool, pad_episodes
 from thci.causal.search import fine_grained_ci, hci, t_hci
 from thci.causal.synthetic import generate_planted_episodes
@@ -161,3 +166,30 @@ def test_pool_counts_rewarded_episodes_as_they_enter_and_drop_out():
     assert pool.num_rewarded == 2
     pool.add(episode(0.0))  # the rewarded first episode drops out
     assert pool.num_rewarded == 1
+
+
+class _TableEstimator:
+    """An estimator whose ATE bounds of a set are looked up per code (the sum over its codes),
+    so the search's decision rule can be checked against known answers."""
+
+    def __init__(self, bounds: dict[int, tuple[float, float]]) -> None:
+        codes = np.array(sorted(bounds))
+        self.bounds = bounds
+        self.data = type("Data", (), {"observed": codes, "num_codes": len(codes)})()
+
+    def ate(self, interventions, eliminated):
+        lower = [sum(self.bounds[int(c)][0] for c in i.codes) for i in interventions]
+        upper = [sum(self.bounds[int(c)][1] for c in i.codes) for i in interventions]
+        return EffectEstimate(np.array(lower), np.array(upper))
+
+
+@pytest.mark.parametrize("search", [hci, lambda e: t_hci(e, z=2)])
+def test_a_confidently_negative_ate_keeps_the_set(search):
+    # code 1: clear effect; code 2: estimate confidently below -xi (predictor misfit);
+    # codes 0 and 3: confidently near zero
+    bounds = {0: (-0.01, 0.01), 1: (0.3, 0.5), 2: (-0.4, -0.2), 3: (-0.02, 0.0)}
+    result = search(_TableEstimator(bounds))
+    assert sorted(result.causal.tolist()) == [1, 2]
+    assert sorted(result.eliminated.tolist()) == [0, 3]
+    records = [r for r in result.interventions if r.codes == (2,)]
+    assert records and all(r.ate_upper == pytest.approx(-0.2) for r in records)

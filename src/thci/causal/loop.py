@@ -308,6 +308,7 @@ class CausalInferenceLoop:
                     "round": record.round,
                     "observations": self.describe(item.codes),
                     "ate": round(item.ate, 5),
+                    "ate_upper": round(item.ate_upper, 5),
                     "kind": item.kind,
                     "batch_seconds": round(item.seconds, 4),
                 }

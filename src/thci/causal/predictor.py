@@ -49,6 +49,17 @@ the eliminated set, which is what the sequential elimination of the search needs
 environment's own noise, and whatever masking O^w costs, hit the control and the intervened
 arm alike and cancel.
 
+Negative estimates. Masking can only remove information, so for a perfect p_ζ no ATE is
+negative. Ours can be: on a Maze-L3 pool of a weak policy, masking the indicator code 2 made
+p_ζ's error on (7 → 7) corridor transitions *fall* from 0.102 to 0.075, on training episodes
+as much as on held-out ones (ATE −0.25 per episode) — a misfit of the control arm (the
+order-free history summary, see above), not overfitting. An estimate below 0 by more than its
+error bars says nothing about whether S matters, so :meth:`EffectEstimator.ate` returns the
+upper bound mean + z·SE too, and the search keeps a set whose upper bound is below −ξ (see
+:mod:`thci.causal.search`). Before this rule T-HCI eliminated the indicators of Maze L3 on
+such pools and the policy, blind to them, never improved (the causes cannot come back once
+the data stop showing them).
+
 Known limits (see the issues): with coarse parts, the per-episode ATE is averaged over almost
 every episode, which dilutes a rare cause's effect; and an observation that the *policy* makes
 informative (a path a trained policy takes only in one variant) shows an effect like a cause.
@@ -87,8 +98,6 @@ class PredictorConfig:
     code_dropout: float = 1.0
     """Largest rate at which the base fit removes codes from an episode's history (see
     :meth:`EffectEstimator._random_code_dropout`)."""
-    """Decoupled weight decay of the code embeddings: an observation the predictor does not
-    need decays to the zero vector, which is exactly what masking puts in its place."""
     holdout_fraction: float = 0.25
     confidence_z: float = 2.0
     """The ATE is reported as mean − confidence_z · standard error over held-out episodes."""
@@ -296,6 +305,19 @@ def _uniform(num_models: int, fan_in: int, fan_out: int) -> torch.Tensor:
 
 
 @dataclass(frozen=True)
+class EffectEstimate:
+    """Confidence bounds on the ATEs of K interventions (see the module doc).
+
+    Attributes:
+        lower: (K,) the largest over the error parts of mean − z·SE: the reported ATE.
+        upper: (K,) the smallest over the error parts of mean + z·SE.
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+
+
+@dataclass(frozen=True)
 class Intervention:
     """A set of observations to mask in histories: codes `codes` (dense ids), or, for the
     fine-grained CI of Prop. 1, only the occurrence of those codes at history step `step`."""
@@ -392,10 +414,10 @@ class EffectEstimator:
 
         return build
 
-    def ate(self, interventions: list[Intervention], eliminated: np.ndarray) -> np.ndarray:
-        """ATE of each intervention given the eliminated set O^w (dense ids), shape (K,)."""
+    def ate(self, interventions: list[Intervention], eliminated: np.ndarray) -> EffectEstimate:
+        """ATE bounds of each intervention given the eliminated set O^w (dense ids)."""
         if not interventions:
-            return np.zeros(0)
+            return EffectEstimate(np.zeros(0), np.zeros(0))
         # Arm 0 is the control: O^w masked, nothing else; it is fine-tuned on the same batches,
         # so what masking O^w (or fine-tuning) costs cancels out of every ATE.
         control = Intervention(np.zeros(0, dtype=np.int64))
@@ -435,5 +457,7 @@ class EffectEstimator:
         # effect counts only where the episodes agree on it, not where a few histories (or the
         # predictor's error on them) carry the mean across ξ.
         variance = ((extra - mean.unsqueeze(-1)) * hit).pow(2).sum(dim=-1) / (count - 1)
-        lower = mean - self.config.confidence_z * (variance / count).sqrt()
-        return lower.max(dim=0).values.numpy()
+        margin = self.config.confidence_z * (variance / count).sqrt()
+        return EffectEstimate(
+            (mean - margin).max(dim=0).values.numpy(), (mean + margin).min(dim=0).values.numpy()
+        )

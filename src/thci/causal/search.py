@@ -15,6 +15,11 @@ removable. Tests run side by side for speed, and every batch that would eliminat
 parts first checks their union in one more intervention; only when that union has an effect
 are the parts resolved one at a time. Causal verdicts never need re-checking: masking more can
 only lose information (the ATE is monotone in the masked set).
+
+A set has an effect when its ATE is confidently above ξ (lower bound > ξ) — or confidently
+below −ξ (upper bound < −ξ): a true ATE is never negative, so such an estimate means p_ζ is
+unreliable for that set, and a set is eliminated only when the estimate confidently says
+"no effect" (see the predictor's module doc).
 """
 
 from __future__ import annotations
@@ -30,13 +35,15 @@ from thci.causal.predictor import EffectEstimator, Intervention
 @dataclass(frozen=True)
 class InterventionRecord:
     """One intervention: the observation codes intervened on (with O^w also masked), the
-    history step for fine-grained CI, its ATE, and the seconds of the batch it ran in."""
+    history step for fine-grained CI, its ATE (lower confidence bound) and the upper bound,
+    and the seconds of the batch it ran in."""
 
     codes: tuple[int, ...]
     ate: float
     seconds: float
     step: int | None = None
     kind: str = "test"  # "test" or "union-check"
+    ate_upper: float = 0.0
 
 
 @dataclass
@@ -64,30 +71,42 @@ class _Search:
         self.records: list[InterventionRecord] = []
 
     def _run(self, sets: list[np.ndarray], kind: str = "test") -> np.ndarray:
-        """ATEs of masking each set (with O^w), logged; see :meth:`run_interventions`."""
+        """Whether masking each set (with O^w) has an effect; see :meth:`run_interventions`."""
         return self.run_interventions([Intervention(s) for s in sets], kind)
 
     def run_interventions(self, interventions: list[Intervention], kind: str = "test"):
-        """One batched ATE estimate of `interventions` given O^w; every one is logged."""
+        """One batched ATE estimate of `interventions` given O^w, every one logged. Returns
+        (K,) bool: which have an effect, i.e. an ATE confidently above ξ, or confidently
+        below −ξ. Masking can only remove information, so a true ATE is never negative; a
+        confidently negative estimate means p_ζ fits the control arm worse than the masked
+        one, and "no effect" cannot be concluded: the set is kept. (A wrongly kept set costs
+        compression; a wrongly eliminated cause is gone from the agent's memory.)"""
         started = time.perf_counter()
-        ates = self.estimator.ate(interventions, self.eliminated)
+        estimate = self.estimator.ate(interventions, self.eliminated)
         seconds = time.perf_counter() - started
         observed = self.estimator.data.observed
-        for intervention, ate in zip(interventions, ates, strict=True):
+        for k, intervention in enumerate(interventions):
             codes = tuple(int(c) for c in observed[intervention.codes])
             self.records.append(
-                InterventionRecord(codes, float(ate), seconds, intervention.step, kind)
+                InterventionRecord(
+                    codes,
+                    float(estimate.lower[k]),
+                    seconds,
+                    intervention.step,
+                    kind,
+                    float(estimate.upper[k]),
+                )
             )
-        return ates
+        return (estimate.lower > self.xi) | (estimate.upper < -self.xi)
 
     def resolve(self, parts: list[np.ndarray]) -> list[np.ndarray]:
         """Test `parts` given O^w; eliminate those without effect; return those with effect."""
         kept: list[np.ndarray] = []
         while parts:
-            ates = self._run(parts)
-            kept += [p for p, a in zip(parts, ates, strict=True) if a > self.xi]
-            drops = [p for p, a in zip(parts, ates, strict=True) if a <= self.xi]
-            if len(drops) <= 1 or self._run([np.concatenate(drops)], "union-check")[0] <= self.xi:
+            effect = self._run(parts)
+            kept += [p for p, e in zip(parts, effect, strict=True) if e]
+            drops = [p for p, e in zip(parts, effect, strict=True) if not e]
+            if len(drops) <= 1 or not self._run([np.concatenate(drops)], "union-check")[0]:
                 self._eliminate(drops)
                 return kept
             # Complementary causes among the drops: the first one is truly removable (it was
@@ -165,7 +184,7 @@ def fine_grained_ci(estimator: EffectEstimator, xi: float = 0.05, batch_size: in
     causal = set()
     for begin in range(0, len(pairs), batch_size):
         chunk = pairs[begin : begin + batch_size]
-        ates = search.run_interventions([Intervention(np.array([c]), t) for c, t in chunk])
-        causal.update(c for (c, _), ate in zip(chunk, ates, strict=True) if ate > xi)
+        effect = search.run_interventions([Intervention(np.array([c]), t) for c, t in chunk])
+        causal.update(c for (c, _), e in zip(chunk, effect, strict=True) if e)
     search.eliminated = np.array(sorted(set(range(data.num_codes)) - causal), dtype=np.int64)
     return search.result("fine-grained", started)
