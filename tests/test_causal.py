@@ -180,7 +180,9 @@ class _TableEstimator:
     def ate(self, interventions, eliminated):
         lower = [sum(self.bounds[int(c)][0] for c in i.codes) for i in interventions]
         upper = [sum(self.bounds[int(c)][1] for c in i.codes) for i in interventions]
-        return EffectEstimate(np.array(lower), np.array(upper))
+        return EffectEstimate(
+            (np.array(lower) + np.array(upper)) / 2, np.array(lower), np.array(upper)
+        )
 
 
 @pytest.mark.parametrize("search", [hci, lambda e: t_hci(e, z=2)])
@@ -193,3 +195,19 @@ def test_a_confidently_negative_ate_keeps_the_set(search):
     assert sorted(result.eliminated.tolist()) == [0, 3]
     records = [r for r in result.interventions if r.codes == (2,)]
     assert records and all(r.ate_upper == pytest.approx(-0.2) for r in records)
+
+
+def test_warm_start_carries_each_code_to_its_row_and_class():
+    config = PredictorConfig(ensemble=2)
+    old = BatchedPredictor(2, num_codes=3, num_actions=2, num_classes=3, config=config)
+    with torch.no_grad():
+        old.embed.copy_(torch.arange(3.0).view(1, 3, 1).expand(2, 3, config.embed_dim) + 1)
+        old.w2[..., :3] = torch.arange(3.0) + 1
+    state = old.state(np.array([10, 20, 30]))
+    new = BatchedPredictor(2, num_codes=3, num_actions=2, num_classes=3, config=config)
+    new.warm_start(state, np.array([20, 30, 40]), classes_are_codes=True)
+    # codes 20 and 30 were rows/classes 1 and 2, now 0 and 1; the new code 40 starts at zero
+    assert torch.equal(new.embed[:, :, 0], torch.tensor([[2.0, 3.0, 0.0]] * 2))
+    assert torch.equal(new.w2[0, :, :2], torch.tensor([2.0, 3.0]).expand(config.hidden_size, 2))
+    assert torch.equal(new.w1, old.w1) and torch.equal(new.w2[..., -1], old.w2[..., -1])
+    assert not torch.equal(new.w2[..., 2], old.w2[..., 2])  # class of code 40: fresh

@@ -213,6 +213,8 @@ T_HCI_FAST = [
     "0",
     "--ci-base-steps",
     "30",
+    "--ci-warm-steps",
+    "10",
     "--seed",
     "5",
 ]

@@ -49,6 +49,7 @@ def test_minigrid_dict_observations_keep_image_and_direction_and_drop_the_missio
 )
 def test_unmodified_third_party_envs_train_through_the_cli(tmp_path, env_id, extra):
     ci = ["--ci-min-episodes", "4", "--ci-min-rewarded-episodes", "1", "--ci-base-steps", "20"]
+    ci += ["--ci-warm-steps", "10"]
     run = ["--env", env_id, "--run-dir", str(tmp_path / "run"), "--total-steps", "768"]
     code = run_cli(["train", *run, *FAST, "--num-envs", "4", "--num-minibatches", "4", *ci, *extra])
     assert code == 0

@@ -122,13 +122,20 @@ class TrainConfig:
     """Capacity of the replay pool (whole episodes, oldest dropped first)."""
     ci_z: int = 4
     """Z: parts each candidate set is split into (T-HCI)."""
-    ci_xi: float = 0.05
-    """xi: an observation set whose ATE (extra prediction error per episode) is <= xi has no
-    causal effect."""
+    ci_xi: float = 0.1
+    """xi: an observation set whose ATE (extra prediction error per episode) lies confidently
+    within [-xi, xi] has no causal effect (thci.causal.search.DEFAULT_XI)."""
     ci_target: Literal["dynamics", "inverse"] = "dynamics"
     """What p_zeta predicts: next observation and reward, or the action (inverse dynamics)."""
     ci_base_steps: int = 1000
-    """Adam steps of the effect predictor per round (fitted once, answers every intervention)."""
+    """Adam steps of the effect predictor in the first round (fitted once per round, answers
+    every intervention)."""
+    ci_warm_steps: int = 300
+    """Adam steps of the effect predictor in later rounds, which continue the previous round's
+    predictor on the grown pool (0: every round fits from scratch for ci_base_steps)."""
+    ci_ensemble: int = 4
+    """Effect predictors fitted side by side per round; their spread is part of each ATE's
+    confidence interval."""
     ci_finetune_steps: int = 0
     """Optional Adam steps of per-intervention fine-tuning (0: off, see causal/predictor.py)."""
     ci_threads: int = 1
@@ -180,6 +187,7 @@ class TrainConfig:
             "ci_max_rounds": self.ci_max_rounds,
             "ci_pool_episodes": self.ci_pool_episodes,
             "ci_base_steps": self.ci_base_steps,
+            "ci_ensemble": self.ci_ensemble,
             "ci_threads": self.ci_threads,
         }
         for name, value in positive_ints.items():
@@ -191,8 +199,9 @@ class TrainConfig:
             )
         if self.ci_lag < 0:
             raise ThciError(f"--ci-lag must be >= 0, got {self.ci_lag}")
-        if self.ci_finetune_steps < 0:
-            raise ThciError(f"--ci-finetune-steps must be >= 0, got {self.ci_finetune_steps}")
+        for name in ("ci_finetune_steps", "ci_warm_steps"):
+            if getattr(self, name) < 0:
+                raise ThciError(f"--{_flag(name)} must be >= 0, got {getattr(self, name)}")
         floats = {
             "learning_rate": self.learning_rate,
             "gamma": self.gamma,

@@ -28,7 +28,7 @@ import torch
 
 from thci.causal.discretize import Discretizer, discretizer_from_state, make_discretizer
 from thci.causal.gate import Gate
-from thci.causal.predictor import EffectEstimator, PredictorConfig
+from thci.causal.predictor import EffectEstimator, PredictorConfig, PredictorState
 from thci.causal.replay import PoolArrays, PoolEpisode, ReplayPool, pad_episodes
 from thci.causal.search import CIResult, hci, t_hci
 from thci.config import TrainConfig
@@ -68,6 +68,7 @@ class CIJob:
         method: "hci" or "t-hci". z, xi: the search's Z and ξ.
         predictor: settings of the effect predictor p_ζ.
         threads: torch threads of the round.
+        warm_start: the previous round's p_ζ, continued on this pool (None: fit from scratch).
     """
 
     pool: PoolArrays
@@ -80,16 +81,19 @@ class CIJob:
     xi: float
     predictor: PredictorConfig
     threads: int
+    warm_start: PredictorState | None = None
 
 
 @dataclass(frozen=True)
 class CIOutcome:
-    """A finished CI round: the search's result, the fitted gate and the round's compute time."""
+    """A finished CI round: the search's result, the fitted gate, the fitted effect predictor
+    (for the next round's warm start) and the round's compute time."""
 
     result: CIResult
     gate_state: dict[str, torch.Tensor]
     gate_accuracy: float
     seconds: float
+    predictor: PredictorState
 
 
 def run_ci_job(job: CIJob) -> CIOutcome:
@@ -99,7 +103,9 @@ def run_ci_job(job: CIJob) -> CIOutcome:
     torch.set_num_threads(job.threads)
     try:
         with torch.random.fork_rng():  # CI must not shift the RL loop's random stream
-            estimator = EffectEstimator(job.pool, job.num_actions, job.predictor)
+            estimator = EffectEstimator(
+                job.pool, job.num_actions, job.predictor, warm_start=job.warm_start
+            )
             if job.method == "hci":
                 result = hci(estimator, xi=job.xi)
             else:
@@ -115,7 +121,8 @@ def run_ci_job(job: CIJob) -> CIOutcome:
             )
     finally:
         torch.set_num_threads(threads)
-    return CIOutcome(result, gate.state_dict(), fit.accuracy, time.perf_counter() - started)
+    seconds = time.perf_counter() - started
+    return CIOutcome(result, gate.state_dict(), fit.accuracy, seconds, estimator.state())
 
 
 class _Outcome(Protocol):
@@ -174,6 +181,7 @@ class CausalInferenceLoop:
         self.stable_rounds = 0
         self.next_round_step = config.ci_every
         self.pending: _PendingRound | None = None
+        self.predictor_state: PredictorState | None = None  # the last applied round's p_ζ
         self._workers: Pool | None = None
 
     # ------------------------------------------------------------------ the RL loop's side
@@ -249,10 +257,13 @@ class CausalInferenceLoop:
             predictor=PredictorConfig(
                 target=cfg.ci_target,
                 base_steps=cfg.ci_base_steps,
+                warm_steps=cfg.ci_warm_steps,
                 finetune_steps=cfg.ci_finetune_steps,
+                ensemble=cfg.ci_ensemble,
                 seed=cfg.seed + len(self.rounds),
             ),
             threads=cfg.ci_threads,
+            warm_start=self.predictor_state if cfg.ci_warm_steps > 0 else None,
         )
 
     def _start(self, global_step: int) -> None:
@@ -281,6 +292,7 @@ class CausalInferenceLoop:
         outcome = pending.outcome.get()
         blocking = pending.blocking_seconds + (time.perf_counter() - waited)
         self.gate.load_state_dict(outcome.gate_state)
+        self.predictor_state = outcome.predictor
         result = outcome.result
         same = self.last_result is not None and np.array_equal(
             self.last_result.causal, result.causal
@@ -308,6 +320,7 @@ class CausalInferenceLoop:
                     "round": record.round,
                     "observations": self.describe(item.codes),
                     "ate": round(item.ate, 5),
+                    "ate_lower": round(item.ate_lower, 5),
                     "ate_upper": round(item.ate_upper, 5),
                     "kind": item.kind,
                     "batch_seconds": round(item.seconds, 4),
@@ -378,6 +391,12 @@ class CausalInferenceLoop:
             else torch.as_tensor(self.last_result.observed),
             "stable_rounds": self.stable_rounds,
             "next_round_step": self.next_round_step,
+            "predictor": None
+            if self.predictor_state is None
+            else {
+                "observed": torch.as_tensor(self.predictor_state.observed),
+                "parameters": self.predictor_state.parameters,
+            },
             # a round in flight is saved as its inputs; the resumed run computes it again
             "round_in_flight": None
             if self.pending is None
@@ -417,6 +436,11 @@ class CausalInferenceLoop:
             )
         self.stable_rounds = state["stable_rounds"]
         self.next_round_step = state["next_round_step"]
+        predictor = state.get("predictor")
+        if predictor is not None:
+            self.predictor_state = PredictorState(
+                predictor["observed"].numpy(), predictor["parameters"]
+            )
         pending = state["round_in_flight"]
         if pending is not None:
             pool = PoolArrays(**{k: v.numpy() for k, v in pending["pool"].items()})

@@ -18,7 +18,8 @@ effects do not depend on the time step, and needs no loop over time. A two-layer
 * ``inverse``: a distribution over a_t, from [history, o_t, o_{t+1}].
 
 One network for every intervention. Eq. 9 minimizes over ζ separately for each intervention.
-Here a single predictor is fitted once per CI round under *random* interventions (each episode
+Here one predictor (an ensemble of M, see Confidence) is fitted once per CI round under
+*random* interventions (each episode
 of a minibatch has whole codes removed at a rate drawn from U[0, 1]) and is told which codes
 its intervention masks (the sum of learned embeddings of the masked codes, never whether they
 occurred in the episode). It therefore represents the family of per-intervention minimizers,
@@ -35,30 +36,38 @@ distribution and the observed outcome, 2·(1 − p(observed)) / 2 = 1 − p(obse
 r| / max|r| for the reward. For an intervention S with eliminated set O^w:
 
     D_e(S) = Σ_t  1[h_{t-1} contains an observation in S] · (err_{S∪O^w}(t) − err_{O^w}(t))
-    ATE(S) = mean − 2·SE of D_e(S) over the n held-out episodes whose history contains S
+    ATE(S) = mean of D_e(S) over the n held-out episodes whose history contains S
 
 i.e. the extra prediction error per episode (Eq. 4 sums over t) that the intervention causes
-where it applies (Prop. 2 integrates over histories that contain O^i), reported at the lower
-end of a one-sided confidence interval (SE = standard deviation / √n; `confidence_z`): an
-effect must be shared by the episodes, not carried by a few of them, to cross ξ. The two
-parts of the dynamics error are measured separately and the larger counts: the next-
-observation part as is, the reward part divided by the mean reward per episode (at least
-REWARD_SCALE_FLOOR), so that what decides a sparse reward is not diluted below ξ by the many
-unrewarded episodes. The control arm masks O^w only, so the ATE is the effect of S *given*
-the eliminated set, which is what the sequential elimination of the search needs; the
-environment's own noise, and whatever masking O^w costs, hit the control and the intervened
-arm alike and cancel.
+where it applies (Prop. 2 integrates over histories that contain O^i). The two parts of the
+dynamics error are measured separately: the next-observation part as is, the reward part
+divided by the mean reward per episode (at least REWARD_SCALE_FLOOR), so that what decides a
+sparse reward is not diluted below ξ by the many unrewarded episodes. The control arm masks
+O^w only, so the ATE is the effect of S *given* the eliminated set, which is what the
+sequential elimination of the search needs; the environment's own noise, and whatever masking
+O^w costs, hit the control and the intervened arm alike and cancel.
+
+Confidence. p_ζ is an ensemble of M independently initialized predictors (`ensemble`, fitted
+side by side in one batched pass, each with its own random interventions); the ATE is their
+mean, and its confidence interval mean ± z·SE (`confidence_z`) counts two sources of error:
+which episodes were held out (SE² over episodes of the ensemble's D_e) and how p_ζ happened to
+be fitted (the members' variance / M). The second dominates on hard pools: on a Maze-L3 pool
+single fits with different seeds kept the causes in one and dropped all of them in the other.
+The search eliminates a set only when the whole interval lies within [−ξ, ξ]
+(:mod:`thci.causal.search`).
 
 Negative estimates. Masking can only remove information, so for a perfect p_ζ no ATE is
 negative. Ours can be: on a Maze-L3 pool of a weak policy, masking the indicator code 2 made
 p_ζ's error on (7 → 7) corridor transitions *fall* from 0.102 to 0.075, on training episodes
 as much as on held-out ones (ATE −0.25 per episode) — a misfit of the control arm (the
-order-free history summary, see above), not overfitting. An estimate below 0 by more than its
-error bars says nothing about whether S matters, so :meth:`EffectEstimator.ate` returns the
-upper bound mean + z·SE too, and the search keeps a set whose upper bound is below −ξ (see
-:mod:`thci.causal.search`). Before this rule T-HCI eliminated the indicators of Maze L3 on
-such pools and the policy, blind to them, never improved (the causes cannot come back once
-the data stop showing them).
+order-free history summary, see above), not overfitting. An interval below −ξ says nothing
+about whether S matters, so such a set is kept. Before these rules T-HCI eliminated the
+indicators of Maze L3 on such pools, and the policy, blind to them, never improved (the causes
+cannot come back once the data stop showing them).
+
+Warm starts. Rounds after the first continue the previous round's predictor on the grown
+pool for `warm_steps` instead of fitting `base_steps` from scratch
+(:meth:`BatchedPredictor.warm_start` carries each code's embedding and output class over).
 
 Known limits (see the issues): with coarse parts, the per-episode ATE is averaged over almost
 every episode, which dilutes a rare cause's effect; and an observation that the *policy* makes
@@ -91,6 +100,11 @@ class PredictorConfig:
     hidden_size: int = 64
     base_steps: int = 1000
     """Adam steps of the base predictor fit (once per CI round)."""
+    warm_steps: int = 300
+    """Adam steps of the fit when it continues an earlier round's predictor (`warm_start`)."""
+    ensemble: int = 4
+    """M independently initialized predictors fitted side by side (one batched pass); an
+    ATE's uncertainty includes how much they disagree (see the module doc)."""
     finetune_steps: int = 0
     """Adam steps of per-intervention fine-tuning (0: the shared network answers directly)."""
     batch_episodes: int = 128
@@ -147,6 +161,20 @@ class CodeData:
         return np.searchsorted(self.observed, codes[inside])
 
 
+@dataclass(frozen=True)
+class PredictorState:
+    """A fitted (ensemble) predictor, kept to warm-start the next CI round's fit.
+
+    Attributes:
+        observed: (|Ô|,) the codes its embedding rows (and output classes, unless hashed)
+            stand for.
+        parameters: its parameters by name (leading dimension M, the ensemble members).
+    """
+
+    observed: np.ndarray
+    parameters: dict[str, torch.Tensor]
+
+
 class BatchedPredictor(nn.Module):
     """K independent predictors p_ζ evaluated in one pass (parameters lead with K).
 
@@ -188,16 +216,51 @@ class BatchedPredictor(nn.Module):
         self.w2 = nn.Parameter(_uniform(num_models, h, out))
         self.b2 = nn.Parameter(torch.zeros(num_models, 1, out))
 
-    def replicate(self, num_models: int) -> BatchedPredictor:
-        """A K'-model copy whose every model starts from this (single) model's weights."""
+    def state(self, observed: np.ndarray) -> PredictorState:
+        """The models' parameters, their rows standing for the codes `observed`."""
+        return PredictorState(
+            observed.copy(), {n: p.detach().clone() for n, p in self.named_parameters()}
+        )
+
+    def warm_start(
+        self, state: PredictorState, observed: np.ndarray, classes_are_codes: bool
+    ) -> None:
+        """Start from an earlier round's predictor fitted on codes `state.observed`.
+
+        The pool has moved on: codes seen in both rounds keep their embeddings, and their
+        output class if `classes_are_codes` (no hashing of classes in either round); new codes
+        start at zero like in a fresh fit, codes that left the pool are dropped.
+        """
+        old = state.parameters
+        _, new_rows, old_rows = np.intersect1d(observed, state.observed, return_indices=True)
+        new_rows, old_rows = torch.as_tensor(new_rows), torch.as_tensor(old_rows)
+        with torch.no_grad():
+            for name in ("embed", "mask_embed"):
+                getattr(self, name)[:, new_rows] = old[name][:, old_rows]
+            steps = min(self.step_embed.shape[1], old["step_embed"].shape[1])
+            self.step_embed[:, :steps] = old["step_embed"][:, :steps]
+            self.w1.copy_(old["w1"])
+            self.b1.copy_(old["b1"])
+            if self.target == "inverse":  # classes are the actions
+                self.w2.copy_(old["w2"])
+                self.b2.copy_(old["b2"])
+                return
+            # dynamics: the reward output is the last column; class c is dense id c
+            self.w2[..., -1], self.b2[..., -1] = old["w2"][..., -1], old["b2"][..., -1]
+            if classes_are_codes:
+                self.w2[..., new_rows] = old["w2"][..., old_rows]
+                self.b2[..., new_rows] = old["b2"][..., old_rows]
+
+    def replicate(self, copies: int) -> BatchedPredictor:
+        """A (M·copies)-model predictor: `copies` consecutive copies of each of the M models."""
         clone = BatchedPredictor.__new__(BatchedPredictor)
         nn.Module.__init__(clone)
         clone.target, clone.num_actions = self.target, self.num_actions
         clone.num_logits = self.num_logits
         clone.register_buffer("logit_offset", self.logit_offset)
         for name in ("embed", "mask_embed", "step_embed", "w1", "b1", "w2", "b2"):
-            value = getattr(self, name).detach()[:1]
-            setattr(clone, name, nn.Parameter(value.repeat(num_models, *[1] * (value.dim() - 1))))
+            value = getattr(self, name).detach().repeat_interleave(copies, dim=0)
+            setattr(clone, name, nn.Parameter(value))
         return clone
 
     def forward(
@@ -287,11 +350,11 @@ class BatchedPredictor(nn.Module):
         return errors, per_step.mean(dim=1)
 
 
-def _replicate_state(state: dict[str, Any], num_models: int) -> dict[str, Any]:
-    """An Adam state_dict of a 1-model BatchedPredictor repeated for `num_models` models."""
+def _replicate_state(state: dict[str, Any], copies: int) -> dict[str, Any]:
+    """The Adam state_dict of a BatchedPredictor for its :meth:`BatchedPredictor.replicate`."""
     per_param = {
         index: {
-            key: value.repeat(num_models, *[1] * (value.dim() - 1)) if value.dim() > 0 else value
+            key: value.repeat_interleave(copies, dim=0) if value.dim() > 0 else value
             for key, value in entry.items()
         }
         for index, entry in state["state"].items()
@@ -306,13 +369,15 @@ def _uniform(num_models: int, fan_in: int, fan_out: int) -> torch.Tensor:
 
 @dataclass(frozen=True)
 class EffectEstimate:
-    """Confidence bounds on the ATEs of K interventions (see the module doc).
+    """The ATEs of K interventions and their confidence bounds (see the module doc).
 
     Attributes:
-        lower: (K,) the largest over the error parts of mean − z·SE: the reported ATE.
-        upper: (K,) the smallest over the error parts of mean + z·SE.
+        ate: (K,) the ensemble's mean D_e, the largest over the error parts.
+        lower: (K,) the smallest over the error parts of mean − z·SE.
+        upper: (K,) the largest over the error parts of mean + z·SE.
     """
 
+    ate: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
 
@@ -333,38 +398,58 @@ class EffectEstimator:
         pool: the replay pool's arrays.
         num_actions: A.
         config: predictor settings.
+        warm_start: an earlier round's predictor to continue (`config.warm_steps` Adam steps
+            instead of `config.base_steps` from scratch).
     """
 
-    def __init__(self, pool: PoolArrays, num_actions: int, config: PredictorConfig) -> None:
+    def __init__(
+        self,
+        pool: PoolArrays,
+        num_actions: int,
+        config: PredictorConfig,
+        warm_start: PredictorState | None = None,
+    ) -> None:
         self.config = config
         self.data = CodeData(pool, config, num_actions)
         torch.manual_seed(config.seed)
         self._dropout_generator = torch.Generator().manual_seed(config.seed + 2)
         self.base = BatchedPredictor(
-            1,
+            config.ensemble,
             self.data.num_codes,
             num_actions,
             self.data.num_classes,
             config,
             max_steps=self.data.actions.shape[1],
         )
-        self._base_optimizer = self._fit(self.base, self._random_code_dropout, config.base_steps)
+        steps = config.base_steps
+        if warm_start is not None:
+            largest = max(self.data.num_codes, len(warm_start.observed))
+            self.base.warm_start(
+                warm_start, self.data.observed, classes_are_codes=largest <= config.max_classes
+            )
+            steps = config.warm_steps
+        self._base_optimizer = self._fit(self.base, self._random_code_dropout, steps)
+
+    def state(self) -> PredictorState:
+        """The fitted base predictor, to warm-start the next round."""
+        return self.base.state(self.data.observed)
 
     def _random_code_dropout(self, episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Random interventions: whole codes removed from each episode's history at a rate
-        drawn per episode uniformly from [0, 1]. Returns the masked positions (1, B, L+1) and
-        the masked codes (1, B, |Ô|).
+        drawn per episode uniformly from [0, 1]. Returns the masked positions (M, B, L+1) and
+        the masked codes (M, B, |Ô|), drawn independently for each of the M members.
 
         Training the base predictor under random interventions of every size keeps it from
         leaning on any one frequent observation and makes heavily masked histories familiar,
         so every warm-started intervention adapts in a few steps instead of paying a spurious
         're-learning' cost that would look like a causal effect.
         """
-        generator = self._dropout_generator
-        rate = torch.rand(len(episodes), 1, generator=generator) * self.config.code_dropout
-        masked_codes = torch.rand(len(episodes), self.data.num_codes, generator=generator) < rate
-        masked = masked_codes.gather(1, self.data.ids[episodes])
-        return masked.unsqueeze(0), masked_codes.unsqueeze(0)
+        generator, members = self._dropout_generator, self.config.ensemble
+        shape = (members, len(episodes))
+        rate = torch.rand(*shape, 1, generator=generator) * self.config.code_dropout
+        masked_codes = torch.rand(*shape, self.data.num_codes, generator=generator) < rate
+        ids = self.data.ids[episodes].expand(members, -1, -1)
+        return masked_codes.gather(2, ids), masked_codes
 
     def _fit(
         self,
@@ -417,32 +502,39 @@ class EffectEstimator:
     def ate(self, interventions: list[Intervention], eliminated: np.ndarray) -> EffectEstimate:
         """ATE bounds of each intervention given the eliminated set O^w (dense ids)."""
         if not interventions:
-            return EffectEstimate(np.zeros(0), np.zeros(0))
+            return EffectEstimate(np.zeros(0), np.zeros(0), np.zeros(0))
         # Arm 0 is the control: O^w masked, nothing else; it is fine-tuned on the same batches,
         # so what masking O^w (or fine-tuning) costs cancels out of every ATE.
         control = Intervention(np.zeros(0, dtype=np.int64))
+        arms, members = len(interventions) + 1, self.config.ensemble
         masks = self._mask_builder([control, *interventions], eliminated)
-        model = self.base.replicate(len(interventions) + 1)
+
+        def member_masks(episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            masked, masked_codes, _ = masks(episodes)  # the arms' masks, for every member
+            return masked.repeat(members, 1, 1), masked_codes.repeat(members, 1, 1)
+
+        model = self.base.replicate(arms)
         # Fine-tuning continues the base fit's Adam moments: a fresh Adam's first steps move
         # every weight by about the learning rate whatever its gradient, noise that would
         # differ between arms and read as (negative or positive) effects.
         self._fit(
             model,
-            lambda ep: masks(ep)[:2],
+            member_masks,
             self.config.finetune_steps,
-            _replicate_state(self._base_optimizer.state_dict(), model.embed.shape[0]),
+            _replicate_state(self._base_optimizer.state_dict(), arms),
         )
         test = self.data.test
         with torch.no_grad():
-            masked, masked_codes, tested = masks(test)
-            errors, _ = model.errors_and_loss(self.data, test, masked, masked_codes)
-        control_errors, errors, tested = errors[:, :1], errors[:, 1:], tested[1:]
+            errors, _ = model.errors_and_loss(self.data, test, *member_masks(test))
+            tested = masks(test)[2][1:]
+        errors = errors.unflatten(1, (members, arms))  # (C, M, arms, E_test, L')
         steps = errors.shape[-1]
         # transition t counts when a tested observation lies in h_{t-1} (positions < t)
         seen = torch.cummax(tested[:, :, :steps].int(), dim=2).values.bool()
         applies = torch.cat((torch.zeros_like(seen[:, :, :1]), seen[:, :, :-1]), dim=2)
         applies &= self.data.valid[test, :steps].unsqueeze(0)
-        extra = ((errors - control_errors) * applies).sum(dim=-1)  # (C, K, E_test): D_e
+        # D_e per member: (C, M, K, E_test)
+        extra = ((errors[:, :, 1:] - errors[:, :, :1]) * applies).sum(dim=-1)
         if self.config.target == "dynamics":
             # The reward part is measured against how much reward there is to predict: a sparse
             # reward (2% of maze episodes early on) would otherwise dilute the effect of what
@@ -452,12 +544,16 @@ class EffectEstimator:
             extra[1] /= max(float(scale), REWARD_SCALE_FLOOR)
         hit = applies.any(dim=2)  # (K, E_test): episodes where the intervention applies
         count = hit.sum(dim=1).clamp(min=2)
-        mean = extra.sum(dim=-1) / count  # (C, K)
-        # The lower end of a one-sided confidence interval over the held-out episodes: an
-        # effect counts only where the episodes agree on it, not where a few histories (or the
-        # predictor's error on them) carry the mean across ξ.
-        variance = ((extra - mean.unsqueeze(-1)) * hit).pow(2).sum(dim=-1) / (count - 1)
-        margin = self.config.confidence_z * (variance / count).sqrt()
+        member_means = extra.sum(dim=-1) / count  # (C, M, K)
+        mean = member_means.mean(dim=1)  # (C, K): the ensemble's ATE
+        # Two sources of uncertainty: which episodes were held out (the spread of the
+        # ensemble's D_e over them) and how the predictors were fitted (the members' spread).
+        ensemble_extra = extra.mean(dim=1)
+        episode_var = ((ensemble_extra - mean.unsqueeze(-1)) * hit).pow(2).sum(dim=-1) / (count - 1)
+        fit_var = member_means.var(dim=1) if members > 1 else torch.zeros_like(mean)
+        margin = self.config.confidence_z * (episode_var / count + fit_var / members).sqrt()
         return EffectEstimate(
-            (mean - margin).max(dim=0).values.numpy(), (mean + margin).min(dim=0).values.numpy()
+            mean.max(dim=0).values.numpy(),
+            (mean - margin).min(dim=0).values.numpy(),
+            (mean + margin).max(dim=0).values.numpy(),
         )
