@@ -5,9 +5,11 @@ everything else), so the seconds in its ci_rounds.csv measure the machine as muc
 round. This benchmark takes the replay pool saved in each run's checkpoint, runs the round
 that run would run (effect predictor fit, T-HCI or HCI search, gate fit: `run_ci_job`) in
 this process with one torch thread, `--repeats` times, and records the median seconds,
-|Ô|, interventions and the causal set found.
+|Ô|, interventions and the causal set found. A later round continues the previous round's
+predictor (`--ci-warm-steps`); `--cold` times a first round instead (`--ci-base-steps` from
+scratch).
 
-    .venv/bin/python benchmarks/ci_rounds.py RUN_DIR [RUN_DIR ...]
+    .venv/bin/python benchmarks/ci_rounds.py RUN_DIR [RUN_DIR ...] [--cold]
 
 Writes benchmarks/results/ci_rounds.json and prints a table.
 """
@@ -27,7 +29,7 @@ from thci.rl.evaluate import load_run
 RESULTS = Path(__file__).parent / "results"
 
 
-def time_round(run_dir: Path, repeats: int) -> dict:
+def time_round(run_dir: Path, repeats: int, cold: bool) -> dict:
     """Median seconds of the run's CI round on the pool of its last checkpoint."""
     config, envs, agent, checkpoint = load_run(run_dir, 1, seed=0)
     envs.close()
@@ -37,7 +39,9 @@ def time_round(run_dir: Path, repeats: int) -> dict:
         config, envs.single_observation_space, int(envs.single_action_space.n), 1, agent.gate
     )
     state = checkpoint["ci"]
-    state["round_in_flight"] = None  # only the pool is needed here
+    state["round_in_flight"] = None  # only the pool (and the predictor) are needed here
+    if cold:
+        state["predictor"] = None
     loop.load_state_dict(state)
     job = loop.make_job(loop.pool.arrays())
     outcomes = [run_ci_job(job) for _ in range(repeats)]
@@ -46,6 +50,7 @@ def time_round(run_dir: Path, repeats: int) -> dict:
         "run": str(run_dir),
         "env": config.env,
         "method": config.method,
+        "round": "first (cold)" if job.warm_start is None else "later (warm)",
         "pool_episodes": len(job.pool.lengths),
         "observed": len(result.observed),
         "interventions": result.num_interventions,
@@ -59,17 +64,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dirs", nargs="+", type=Path)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--cold", action="store_true", help="time a first round")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    rows = [time_round(d, args.repeats) for d in args.run_dirs]
+    rows = [time_round(d, args.repeats, args.cold) for d in args.run_dirs]
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "ci_rounds.json").write_text(json.dumps(rows, indent=2) + "\n")
-    print("| run | |Ô| | interventions | kept | seconds (median) |")
-    print("|---|---|---|---|---|")
+    name = "ci_rounds_cold.json" if args.cold else "ci_rounds.json"
+    (RESULTS / name).write_text(json.dumps(rows, indent=2) + "\n")
+    print("| run | round | |Ô| | interventions | kept | seconds (median) |")
+    print("|---|---|---|---|---|---|")
     for r in rows:
         print(
-            f"| {Path(r['run']).name} | {r['observed']} | {r['interventions']} | {r['kept']} "
-            f"| {r['seconds_median']} |"
+            f"| {Path(r['run']).name} | {r['round']} | {r['observed']} | {r['interventions']} "
+            f"| {r['kept']} | {r['seconds_median']} |"
         )
 
 
