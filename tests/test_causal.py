@@ -211,3 +211,12 @@ def test_warm_start_carries_each_code_to_its_row_and_class():
     assert torch.equal(new.w2[0, :, :2], torch.tensor([2.0, 3.0]).expand(config.hidden_size, 2))
     assert torch.equal(new.w1, old.w1) and torch.equal(new.w2[..., -1], old.w2[..., -1])
     assert not torch.equal(new.w2[..., 2], old.w2[..., 2])  # class of code 40: fresh
+
+
+@pytest.mark.parametrize("search", [hci, lambda e, keep: t_hci(e, z=2, keep=keep)])
+def test_observations_kept_from_earlier_rounds_are_not_tested_again(search):
+    # code 0 would be eliminated if tested; it was found causal before, so it stays
+    bounds = {0: (-0.01, 0.01), 1: (0.3, 0.5), 2: (-0.01, 0.01), 3: (-0.02, 0.0)}
+    result = search(_TableEstimator(bounds), keep=np.array([0]))
+    assert sorted(result.causal.tolist()) == [0, 1]
+    assert all(0 not in r.codes for r in result.interventions)

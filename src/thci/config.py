@@ -112,6 +112,11 @@ class TrainConfig:
     ci_async: bool = True
     """Run CI rounds in a worker process beside the RL loop (Fig. 3); results are identical
     either way, as the gate takes effect at the same step."""
+    ci_cumulative: bool = True
+    """Observations found causal in a round stay causal in later rounds (they are not tested
+    again). Once the policy acts on a cause, the path it takes tells the outcome as well, and a
+    round on such a pool finds the cause redundant: on Maze L1 the third round (pool of a
+    solved policy) kept nothing and success fell from 0.9+ to 0.52."""
     ci_min_episodes: int = 400
     """Episodes the replay pool must hold before the first CI round."""
     ci_min_rewarded_episodes: int = 50
@@ -129,7 +134,7 @@ class TrainConfig:
     within [-xi, xi] has no causal effect (thci.causal.search.DEFAULT_XI)."""
     ci_target: Literal["dynamics", "inverse"] = "dynamics"
     """What p_zeta predicts: next observation and reward, or the action (inverse dynamics)."""
-    ci_base_steps: int = 1000
+    ci_base_steps: int = 400
     """Adam steps of the effect predictor in the first round (fitted once per round, answers
     every intervention)."""
     ci_warm_steps: int = 300

@@ -69,6 +69,7 @@ class CIJob:
         predictor: settings of the effect predictor p_ζ.
         threads: torch threads of the round.
         warm_start: the previous round's p_ζ, continued on this pool (None: fit from scratch).
+        keep: codes found causal in earlier rounds (`ci_cumulative`): kept without a test.
     """
 
     pool: PoolArrays
@@ -82,6 +83,7 @@ class CIJob:
     predictor: PredictorConfig
     threads: int
     warm_start: PredictorState | None = None
+    keep: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -106,10 +108,11 @@ def run_ci_job(job: CIJob) -> CIOutcome:
             estimator = EffectEstimator(
                 job.pool, job.num_actions, job.predictor, warm_start=job.warm_start
             )
+            keep = None if job.keep is None else estimator.data.dense_ids(job.keep)
             if job.method == "hci":
-                result = hci(estimator, xi=job.xi)
+                result = hci(estimator, xi=job.xi, keep=keep)
             else:
-                result = t_hci(estimator, z=job.z, xi=job.xi)
+                result = t_hci(estimator, z=job.z, xi=job.xi, keep=keep)
             gate = Gate(job.observation_size)
             gate.load_state_dict(job.gate_state)
             observations = torch.as_tensor(
@@ -182,6 +185,7 @@ class CausalInferenceLoop:
         self.next_round_step = config.ci_every
         self.pending: _PendingRound | None = None
         self.predictor_state: PredictorState | None = None  # the last applied round's p_ζ
+        self.causal_so_far: set[int] = set()  # codes found causal by any applied round
         self._workers: Pool | None = None
 
     # ------------------------------------------------------------------ the RL loop's side
@@ -264,6 +268,9 @@ class CausalInferenceLoop:
             ),
             threads=cfg.ci_threads,
             warm_start=self.predictor_state if cfg.ci_warm_steps > 0 else None,
+            keep=np.array(sorted(self.causal_so_far), dtype=np.int64)
+            if cfg.ci_cumulative
+            else None,
         )
 
     def _start(self, global_step: int) -> None:
@@ -294,6 +301,7 @@ class CausalInferenceLoop:
         self.gate.load_state_dict(outcome.gate_state)
         self.predictor_state = outcome.predictor
         result = outcome.result
+        self.causal_so_far.update(int(c) for c in result.causal)
         same = self.last_result is not None and np.array_equal(
             self.last_result.causal, result.causal
         )
@@ -391,6 +399,7 @@ class CausalInferenceLoop:
             else torch.as_tensor(self.last_result.observed),
             "stable_rounds": self.stable_rounds,
             "next_round_step": self.next_round_step,
+            "causal_so_far": sorted(self.causal_so_far),
             "predictor": None
             if self.predictor_state is None
             else {
@@ -436,6 +445,7 @@ class CausalInferenceLoop:
             )
         self.stable_rounds = state["stable_rounds"]
         self.next_round_step = state["next_round_step"]
+        self.causal_so_far = set(state.get("causal_so_far", []))
         predictor = state.get("predictor")
         if predictor is not None:
             self.predictor_state = PredictorState(

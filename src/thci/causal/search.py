@@ -140,19 +140,25 @@ class _Search:
         )
 
 
-def t_hci(estimator: EffectEstimator, z: int = 4, xi: float = DEFAULT_XI) -> CIResult:
+def t_hci(
+    estimator: EffectEstimator,
+    z: int = 4,
+    xi: float = DEFAULT_XI,
+    keep: np.ndarray | None = None,
+) -> CIResult:
     """Tree-based History Counterfactual Inference (Prop. 3) over Ô.
 
     Args:
         estimator: a fitted :class:`EffectEstimator` on the replay pool.
         z: Z, the number of parts each candidate set is split into (≥ 2).
         xi: ξ, the ATE threshold at or below which a part has no causal effect.
+        keep: dense ids that are causal already (found in an earlier round): not tested.
     """
     if z < 2:
         raise ValueError(f"Z must be at least 2, got {z}")
     started = time.perf_counter()
     search = _Search(estimator, xi)
-    branches = [np.arange(estimator.data.num_codes)]
+    branches = [_candidates(estimator, keep)]
     while branches:
         large = [b for b in branches if len(b) >= z]
         small = [b for b in branches if len(b) < z]
@@ -167,15 +173,26 @@ def t_hci(estimator: EffectEstimator, z: int = 4, xi: float = DEFAULT_XI) -> CIR
     return search.result("t-hci", started)
 
 
-def hci(estimator: EffectEstimator, xi: float = DEFAULT_XI, batch_size: int = 16) -> CIResult:
+def hci(
+    estimator: EffectEstimator,
+    xi: float = DEFAULT_XI,
+    batch_size: int = 16,
+    keep: np.ndarray | None = None,
+) -> CIResult:
     """History Counterfactual Inference on single observations (Thm. 2): |Ô| interventions,
-    run `batch_size` at a time."""
+    run `batch_size` at a time; `keep` as in :func:`t_hci`."""
     started = time.perf_counter()
     search = _Search(estimator, xi)
-    codes = np.arange(estimator.data.num_codes)
+    codes = _candidates(estimator, keep)
     for begin in range(0, len(codes), batch_size):
         search.resolve([np.array([c]) for c in codes[begin : begin + batch_size]])
     return search.result("hci", started)
+
+
+def _candidates(estimator: EffectEstimator, keep: np.ndarray | None) -> np.ndarray:
+    """Dense ids of Ô to test: all but `keep`."""
+    codes = np.arange(estimator.data.num_codes)
+    return codes if keep is None else np.setdiff1d(codes, keep)
 
 
 def fine_grained_ci(
