@@ -22,27 +22,16 @@ import statistics
 from pathlib import Path
 
 import torch
+from saved_ci import load_ci_loop
 
-from thci.causal.loop import CausalInferenceLoop, run_ci_job
-from thci.rl.evaluate import load_run
+from thci.causal.loop import run_ci_job
 
 RESULTS = Path(__file__).parent / "results"
 
 
 def time_round(run_dir: Path, repeats: int, cold: bool) -> dict:
     """Median seconds of the run's CI round on the pool of its last checkpoint."""
-    config, envs, agent, checkpoint = load_run(run_dir, 1, seed=0)
-    envs.close()
-    if agent.gate is None:
-        raise SystemExit(f"{run_dir} is not a t-hci/hci run")
-    loop = CausalInferenceLoop(
-        config, envs.single_observation_space, int(envs.single_action_space.n), 1, agent.gate
-    )
-    state = checkpoint["ci"]
-    state["round_in_flight"] = None  # only the pool (and the predictor) are needed here
-    if cold:
-        state["predictor"] = None
-    loop.load_state_dict(state)
+    config, loop = load_ci_loop(run_dir, cold)
     job = loop.make_job(loop.pool.arrays())
     outcomes = [run_ci_job(job) for _ in range(repeats)]
     result = outcomes[-1].result

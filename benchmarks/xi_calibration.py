@@ -23,13 +23,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from saved_ci import load_ci_loop
 
-from thci.causal.loop import CausalInferenceLoop
 from thci.causal.predictor import EffectEstimator, PredictorConfig
 from thci.causal.replay import pad_episodes
 from thci.causal.search import t_hci
 from thci.causal.synthetic import generate_planted_episodes
-from thci.rl.evaluate import load_run
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -53,23 +52,14 @@ def planted_rows(seed: int, xis: list[float]) -> list[dict]:
 
 
 def run_rows(run_dir: Path, xis: list[float]) -> list[dict]:
-    config, envs, agent, checkpoint = load_run(run_dir, 1, seed=0)
-    envs.close()
-    if agent.gate is None:
-        raise SystemExit(f"{run_dir} is not a t-hci/hci run")
-    loop = CausalInferenceLoop(
-        config, envs.single_observation_space, int(envs.single_action_space.n), 1, agent.gate
-    )
-    state = checkpoint["ci"]
-    state["round_in_flight"] = None  # only the pool is needed here
-    loop.load_state_dict(state)
+    config, loop = load_ci_loop(run_dir)
     pool = loop.pool.arrays()
     truth = None
     if all(e.causal is not None for e in loop.pool.episodes):
         labelled = np.concatenate([e.codes[e.causal] for e in loop.pool.episodes])
         truth = loop.describe(np.unique(labelled))
     started = time.perf_counter()
-    estimator = EffectEstimator(pool, int(envs.single_action_space.n), PredictorConfig(seed=0))
+    estimator = EffectEstimator(pool, loop.num_actions, PredictorConfig(seed=0))
     fit = time.perf_counter() - started
     name = f"{config.env} {config.method} s{config.seed}"
     return [

@@ -525,8 +525,14 @@ class EffectEstimator:
         )
         test = self.data.test
         with torch.no_grad():
-            errors, _ = model.errors_and_loss(self.data, test, *member_masks(test))
-            tested = masks(test)[2][1:]
+            masked, masked_codes, tested = masks(test)
+            errors, _ = model.errors_and_loss(
+                self.data,
+                test,
+                masked.repeat(members, 1, 1),
+                masked_codes.repeat(members, 1, 1),
+            )
+        tested = tested[1:]
         errors = errors.unflatten(1, (members, arms))  # (C, M, arms, E_test, L')
         steps = errors.shape[-1]
         # transition t counts when a tested observation lies in h_{t-1} (positions < t)
