@@ -16,6 +16,7 @@ from torch import nn
 
 from thci.causal.gate import Gate
 from thci.memory import Memory
+from thci.rl.encoders import OneHotLinear
 
 
 def _layer(linear: nn.Linear, std: float) -> nn.Linear:
@@ -35,6 +36,9 @@ class ActorCritic(nn.Module):
         encoder_size: width of the observation encoder and of the heads' hidden layer.
         gate: for the causal memory, the gate that decides which observations the memory keeps
             (fitted by the CI loop, never by the RL loss).
+        categories: for observations of small integer codes, the number of values of each
+            dimension (:func:`thci.rl.encoders.observation_categories`): the encoder then reads
+            them one-hot. None: a linear encoder on the values as they are.
     """
 
     def __init__(
@@ -44,13 +48,19 @@ class ActorCritic(nn.Module):
         memory: Memory,
         encoder_size: int,
         gate: Gate | None = None,
+        categories: list[int] | None = None,
     ) -> None:
         super().__init__()
         self.gate = gate
         self.observation_size = observation_size
-        self.encoder = nn.Sequential(
-            _layer(nn.Linear(observation_size, encoder_size), np.sqrt(2)), nn.ReLU()
+        if categories is not None and len(categories) != observation_size:
+            raise ValueError(f"{len(categories)} categories for {observation_size} dimensions")
+        first = (
+            OneHotLinear(categories, encoder_size)
+            if categories is not None
+            else _layer(nn.Linear(observation_size, encoder_size), np.sqrt(2))
         )
+        self.encoder = nn.Sequential(first, nn.ReLU())
         self.memory = memory
         # A hidden layer between memory and outputs (as in SB3's RecurrentPPO): with linear
         # heads, LSTM-PPO barely learns to condition on small-scale inputs such as CartPole's.

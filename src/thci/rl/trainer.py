@@ -35,6 +35,7 @@ from thci.experiments.run_dir import (
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
 from thci.rl.dmc import DMC
+from thci.rl.encoders import observation_categories
 from thci.rl.exploration import make_exploration_bonus
 from thci.rl.ppo import A2C, PPO
 from thci.rl.rollout import RolloutCollector
@@ -77,6 +78,7 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
         memory,
         config.encoder_size,
         gate=Gate(observation_size) if causal else None,
+        categories=observation_categories(envs.single_observation_space),
     )
 
 
