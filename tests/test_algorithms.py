@@ -7,7 +7,7 @@ import torch
 from thci.config import TrainConfig
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
-from thci.rl.dmc import DMC, monte_carlo_returns
+from thci.rl.dmc import DMC, epsilon_at, monte_carlo_returns
 from thci.rl.episodes import EpisodeAssembler
 from thci.rl.ppo import A2C
 from thci.rl.rollout import Rollout
@@ -117,3 +117,12 @@ def test_a2c_takes_one_policy_gradient_step_on_the_whole_rollout():
     flat_adv = torch.cat((adv[:, 0], adv[:1, 1], adv[1:, 1]))
     assert losses["policy_loss"] == pytest.approx(-(flat_adv * logp).mean().item(), rel=1e-5)
     assert len(losses) >= 3 and "clipfrac" not in losses  # no PPO statistics
+
+
+def test_dmc_epsilon_decays_linearly_then_stays():
+    config = TrainConfig(algo="dmc", dmc_epsilon_start=1.0, dmc_epsilon=0.1, dmc_epsilon_decay=1000)
+    assert epsilon_at(config, 0) == 1.0
+    assert epsilon_at(config, 500) == pytest.approx(0.55)
+    assert epsilon_at(config, 1000) == pytest.approx(0.1)
+    assert epsilon_at(config, 10**6) == pytest.approx(0.1)
+    assert epsilon_at(TrainConfig(algo="dmc", dmc_epsilon_decay=0), 0) == 0.1  # no decay

@@ -86,7 +86,11 @@ class TrainConfig:
     num_minibatches: int = 8
     """Minibatches per epoch; each holds whole episode segments, never cut sequences."""
     dmc_epsilon: float = 0.1
-    """DMC's exploration: probability of a uniformly random action."""
+    """DMC's exploration: probability of a uniformly random action, after the decay."""
+    dmc_epsilon_start: float = 1.0
+    """DMC's epsilon at the first step; it falls linearly to --dmc-epsilon (as in DQN)."""
+    dmc_epsilon_decay: int = 50_000
+    """Env steps over which DMC's epsilon falls from --dmc-epsilon-start to --dmc-epsilon."""
     clip_coef: float = 0.2
     ent_coef: float = 0.01
     vf_coef: float = 0.5
@@ -233,8 +237,11 @@ class TrainConfig:
         for name in ("clip_coef", "ent_coef", "vf_coef", "max_grad_norm", "count_beta"):
             if getattr(self, name) < 0:
                 raise ThciError(f"--{_flag(name)} must be >= 0, got {getattr(self, name)}")
-        if not 0 <= self.dmc_epsilon <= 1:
-            raise ThciError(f"--dmc-epsilon must be in [0, 1], got {self.dmc_epsilon}")
+        for name in ("dmc_epsilon", "dmc_epsilon_start"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ThciError(f"--{_flag(name)} must be in [0, 1], got {getattr(self, name)}")
+        if self.dmc_epsilon_decay < 0:
+            raise ThciError(f"--dmc-epsilon-decay must be >= 0, got {self.dmc_epsilon_decay}")
         if self.method == "sai" and self.encoder_size % 4:
             raise ThciError(
                 f"--method sai splits --encoder-size over 4 attention heads: it must be a "

@@ -34,7 +34,7 @@ from thci.experiments.run_dir import (
 )
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
-from thci.rl.dmc import DMC
+from thci.rl.dmc import DMC, epsilon_at
 from thci.rl.encoders import observation_categories
 from thci.rl.exploration import make_exploration_bonus
 from thci.rl.ppo import A2C, PPO
@@ -158,7 +158,7 @@ def _train(
         config.gamma,
         config.success_return,
         info_keys=counted,
-        epsilon=config.dmc_epsilon if dmc else None,
+        epsilon=config.dmc_epsilon_start if dmc else None,
         bootstrap_truncation=not dmc,
     )
     tracker = SolveTracker(config.solve_window, config.solve_threshold)
@@ -249,6 +249,9 @@ def _train(
             if config.anneal_lr:
                 for group in optimizer.param_groups:
                     group["lr"] = config.learning_rate * (1 - update / num_updates)
+            if dmc:  # a function of the step count alone, so resumption needs no extra state
+                collector.epsilon = epsilon_at(config, global_step)
+                writer.add_scalar("charts/epsilon", collector.epsilon, global_step)
             rollout, episodes = collector.collect()
             tracker.add(episodes, global_step, config.num_envs)
             global_step += steps_per_update
