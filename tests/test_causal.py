@@ -172,10 +172,19 @@ class _TableEstimator:
     """An estimator whose ATE bounds of a set are looked up per code (the sum over its codes),
     so the search's decision rule can be checked against known answers."""
 
-    def __init__(self, bounds: dict[int, tuple[float, float]]) -> None:
+    def __init__(
+        self,
+        bounds: dict[int, tuple[float, float]],
+        episodes: dict[int, set[int]] | None = None,
+    ) -> None:
         codes = np.array(sorted(bounds))
         self.bounds = bounds
+        # held-out episodes holding each code (default: every code in all 100)
+        self.episodes = episodes or {int(c): set(range(100)) for c in codes}
         self.data = type("Data", (), {"observed": codes, "num_codes": len(codes)})()
+
+    def support(self, codes):
+        return len(set().union(*(self.episodes[int(c)] for c in codes)))
 
     def ate(self, interventions, eliminated):
         lower = [sum(self.bounds[int(c)][0] for c in i.codes) for i in interventions]
@@ -195,6 +204,34 @@ def test_a_confidently_negative_ate_keeps_the_set(search):
     assert sorted(result.eliminated.tolist()) == [0, 3]
     records = [r for r in result.interventions if r.codes == (2,)]
     assert records and all(r.ate_upper == pytest.approx(-0.2) for r in records)
+
+
+def test_t_hci_keeps_a_part_too_rare_to_split_whole():
+    # code 1 has the effect; codes 0 and 1 occur in two held-out episodes each, 2 and 3 in 20
+    bounds = {0: (-0.01, 0.01), 1: (0.3, 0.5), 2: (-0.01, 0.01), 3: (-0.01, 0.01)}
+    episodes = {0: {0, 1}, 1: {2, 3}, 2: set(range(4, 24)), 3: set(range(10, 30))}
+    estimator = _TableEstimator(bounds, episodes)
+    rare = t_hci(estimator, z=2, min_support=10)
+    assert sorted(rare.causal.tolist()) == [0, 1]  # [0, 1] (4 episodes) is not split
+    assert sorted(rare.eliminated.tolist()) == [2, 3]
+    assert all(len(r.codes) > 1 for r in rare.interventions)
+    split = t_hci(estimator, z=2, min_support=1)
+    assert split.causal.tolist() == [1] and sorted(split.eliminated.tolist()) == [0, 2, 3]
+
+
+def test_support_counts_held_out_episodes_with_the_code_in_a_history():
+    planted = generate_planted_episodes(12, num_causal=1, num_episodes=60, seed=2)
+    config = PredictorConfig(base_steps=1, ensemble=1)
+    estimator = EffectEstimator(pad_episodes(planted.episodes), 4, config)
+    data = estimator.data
+    ids, valid = data.ids[data.test], data.valid[data.test]
+    for code in range(data.num_codes):
+        # o_1 … o_{L-1} precede the last transition; o_L is only ever the current observation
+        expected = sum(
+            bool((ids[e, : int(valid[e].sum()) - 1] == code).any()) for e in range(len(ids))
+        )
+        assert estimator.support(np.array([code])) == expected
+    assert estimator.support(np.arange(data.num_codes)) == len(ids)
 
 
 def test_warm_start_carries_each_code_to_its_row_and_class():

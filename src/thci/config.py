@@ -133,6 +133,9 @@ class TrainConfig:
     """Capacity of the replay pool (whole episodes, oldest dropped first)."""
     ci_z: int = 4
     """Z: parts each candidate set is split into (T-HCI)."""
+    ci_min_support: int = 10
+    """T-HCI splits a part with an effect only while it occurs in at least this many held-out
+    episodes; rarer parts are kept whole (thci.causal.search.DEFAULT_MIN_SUPPORT)."""
     ci_xi: float = 0.1
     """xi: an observation set whose ATE (extra prediction error per episode) lies confidently
     within [-xi, xi] has no causal effect (thci.causal.search.DEFAULT_XI)."""
@@ -247,6 +250,8 @@ class TrainConfig:
                 f"--method sai splits --encoder-size over 4 attention heads: it must be a "
                 f"multiple of 4, got {self.encoder_size}"
             )
+        if self.ci_min_support < 1:
+            raise ThciError(f"--ci-min-support must be >= 1, got {self.ci_min_support}")
         if self.ci_z < 2:
             raise ThciError(f"--ci-z must be at least 2, got {self.ci_z}")
         if self.ci_xi < 0:

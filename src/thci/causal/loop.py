@@ -30,7 +30,7 @@ from thci.causal.discretize import Discretizer, discretizer_from_state, make_dis
 from thci.causal.gate import Gate
 from thci.causal.predictor import EffectEstimator, PredictorConfig, PredictorState
 from thci.causal.replay import PoolArrays, PoolEpisode, ReplayPool, pad_episodes
-from thci.causal.search import CIResult, hci, t_hci
+from thci.causal.search import DEFAULT_MIN_SUPPORT, CIResult, hci, t_hci
 from thci.config import TrainConfig
 from thci.rl.episodes import EpisodeAssembler
 from thci.rl.rollout import Rollout
@@ -70,6 +70,7 @@ class CIJob:
         threads: torch threads of the round.
         warm_start: the previous round's p_ζ, continued on this pool (None: fit from scratch).
         keep: codes found causal in earlier rounds (`ci_cumulative`): kept without a test.
+        min_support: T-HCI splits a part only while it occurs in this many held-out episodes.
     """
 
     pool: PoolArrays
@@ -84,6 +85,7 @@ class CIJob:
     threads: int
     warm_start: PredictorState | None = None
     keep: np.ndarray | None = None
+    min_support: int = DEFAULT_MIN_SUPPORT
 
 
 @dataclass(frozen=True)
@@ -112,7 +114,9 @@ def run_ci_job(job: CIJob) -> CIOutcome:
             if job.method == "hci":
                 result = hci(estimator, xi=job.xi, keep=keep)
             else:
-                result = t_hci(estimator, z=job.z, xi=job.xi, keep=keep)
+                result = t_hci(
+                    estimator, z=job.z, xi=job.xi, keep=keep, min_support=job.min_support
+                )
             gate = Gate(job.observation_size)
             gate.load_state_dict(job.gate_state)
             observations = torch.as_tensor(
@@ -271,6 +275,7 @@ class CausalInferenceLoop:
             keep=np.array(sorted(self.causal_so_far), dtype=np.int64)
             if cfg.ci_cumulative
             else None,
+            min_support=cfg.ci_min_support,
         )
 
     def _start(self, global_step: int) -> None:
