@@ -4,10 +4,10 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from thci.config import TrainConfig
 from thci.envs.factory import make_vector_env
-from thci.memory import make_memory
-from thci.rl.agent import ActorCritic
 from thci.rl.encoders import OneHotLinear, observation_categories
+from thci.rl.trainer import build_agent
 
 
 def test_categories_only_for_small_integer_codes():
@@ -35,16 +35,20 @@ def test_one_hot_linear_equals_a_linear_layer_on_the_one_hot_expansion():
     assert torch.allclose(layer(obs), expected, atol=1e-6)
     # A float copy of the codes (what the rollout feeds the agent) gives the same features.
     assert torch.allclose(layer(obs.float()), expected, atol=1e-6)
-    # Codes are categories: features of code 2 are not between those of codes 1 and 3.
-    rows = layer.embedding.weight[2 + 1 : 2 + 4]  # dimension 2, codes 1..3
-    assert not torch.allclose(rows[1], (rows[0] + rows[2]) / 2)
 
 
-def test_agent_uses_the_one_hot_encoder_for_codes():
-    memory = make_memory("lstm", 8, 8)
-    coded = ActorCritic(3, 2, memory, 8, categories=[3, 2, 4])
-    plain = ActorCritic(3, 2, make_memory("lstm", 8, 8), 8)
-    assert isinstance(coded.encoder[0], OneHotLinear)
-    assert isinstance(plain.encoder[0], torch.nn.Linear)
-    logits, values, _ = coded(torch.tensor([[[2.0, 1.0, 3.0]]]), coded.initial_state(1))
-    assert logits.shape == (1, 1, 2) and values.shape == (1, 1)
+def test_trainer_builds_a_one_hot_encoder_for_babyai_and_a_linear_one_for_the_maze():
+    for env_id, first_layer in (
+        ("thci/BabyAI-L1-v0", OneHotLinear),
+        ("thci/PaperMaze-L1-v0", torch.nn.Linear),
+    ):
+        config = TrainConfig(env=env_id, num_envs=1)
+        envs = make_vector_env(env_id, 1)
+        agent = build_agent(config, envs)
+        obs, _ = envs.reset(seed=0)
+        envs.close()
+        assert isinstance(agent.encoder[0], first_layer)
+        logits, _, _ = agent(
+            torch.as_tensor(obs, dtype=torch.float32)[None], agent.initial_state(1)
+        )
+        assert logits.shape == (1, 1, agent.actor[-1].out_features)

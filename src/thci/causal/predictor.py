@@ -560,22 +560,8 @@ class EffectEstimator:
         arms, members = len(interventions) + 1, self.config.ensemble
         masks = self._mask_builder([control, *interventions], eliminated)
 
-        def member_masks(episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            masked, masked_codes, _ = masks(episodes)  # the arms' masks, for every member
-            return masked.repeat(members, 1, 1), masked_codes.repeat(members, 1, 1)
-
-        model = self.base.replicate(arms)
-        # Fine-tuning continues the base fit's Adam moments: a fresh Adam's first steps move
-        # every weight by about the learning rate whatever its gradient, noise that would
-        # differ between arms and read as (negative or positive) effects.
-        self._fit(
-            model,
-            member_masks,
-            self.config.finetune_steps,
-            _replicate_state(self._base_optimizer.state_dict(), arms),
-        )
         test = self.data.test
-        _, _, tested = masks(test)
+        masked, masked_codes, tested = masks(test)
         steps = int(self.data.valid[test].sum(dim=1).max())
         # transition t counts when a tested observation lies in h_{t-1} (positions < t)
         seen = torch.cummax(tested[1:, :, :steps].int(), dim=2).values.bool()
@@ -591,8 +577,25 @@ class EffectEstimator:
             return EffectEstimate(zeros, zeros.copy(), zeros.copy())
         reward_scale = self.data.rewards[test].abs().sum(dim=1).mean()
         test, needed, applies = test[hit_any], needed[hit_any], applies[:, hit_any]
+        masked = masked[:, hit_any]
+
+        model = self.base.replicate(arms)
+        if self.config.finetune_steps > 0:
+
+            def member_masks(episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                masked, masked_codes, _ = masks(episodes)  # the arms' masks, for every member
+                return masked.repeat(members, 1, 1), masked_codes.repeat(members, 1, 1)
+
+            # Fine-tuning continues the base fit's Adam moments: a fresh Adam's first steps
+            # move every weight by about the learning rate whatever its gradient, noise that
+            # would differ between arms and read as (negative or positive) effects.
+            self._fit(
+                model,
+                member_masks,
+                self.config.finetune_steps,
+                _replicate_state(self._base_optimizer.state_dict(), arms),
+            )
         with torch.no_grad():
-            masked, masked_codes, _ = masks(test)
             errors, _ = model.errors_and_loss(
                 self.data,
                 test,
