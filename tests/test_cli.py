@@ -275,10 +275,11 @@ def test_count_key_missing_from_info_is_refused_before_anything_is_written(tmp_p
     assert not run_dir.exists()
 
 
-def test_count_exploration_adds_bonus_and_resumes_to_the_same_result(tmp_path):
+@pytest.mark.parametrize("kind", ["count", "episodic-count"])
+def test_count_exploration_adds_bonus_and_resumes_to_the_same_result(tmp_path, kind):
     args = [
         "--exploration",
-        "count",
+        kind,
         "--count-key",
         "agent_pos",
         "--count-beta",

@@ -4,7 +4,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from thci.rl.exploration import CountBonus, EpisodicNoveltyBonus
+from thci.rl.exploration import CountBonus, EpisodicCountBonus, EpisodicNoveltyBonus
 
 SPACE = spaces.Box(0, 1, (3,))
 
@@ -40,3 +40,17 @@ def test_count_bonus_is_beta_over_root_of_visits_so_far():
     np.testing.assert_allclose(
         bonus.bonus(np.array([[1]]), np.zeros((1, 1), dtype=bool)), [[1 / np.sqrt(2)]]
     )
+
+
+def test_episodic_count_bonus_pays_first_visits_by_run_wide_rarity():
+    bonus = EpisodicCountBonus(SPACE, 1.0, num_envs=2)
+    codes = np.array([[1, 5], [2, 5], [1, 5]])  # (T, N)
+    dones = np.array([[0, 0], [0, 0], [0, 0]], dtype=bool)
+    got = bonus.bonus(codes, dones)
+    # every visit counts toward N (code 1: 2, code 2: 1, code 5: 3), only first visits pay
+    np.testing.assert_allclose(got, [[1 / np.sqrt(2), 1 / np.sqrt(3)], [1.0, 0.0], [0.0, 0.0]])
+    # env 1's episode continues (5 already visited); env 0 ends, and code 1 is new again
+    got = bonus.bonus(np.array([[5, 5], [1, 7]]), np.array([[1, 0], [0, 0]], dtype=bool))
+    np.testing.assert_allclose(got, [[1 / np.sqrt(5), 0.0], [1 / np.sqrt(3), 1.0]])
+    state = bonus.state_dict()
+    assert set(state) == {"discretizer", "counts", "visited"}

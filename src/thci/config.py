@@ -98,9 +98,10 @@ class TrainConfig:
     norm_adv: bool = True
 
     # Exploration
-    exploration: Literal["none", "count", "episodic"] = "none"
+    exploration: Literal["none", "count", "episodic", "episodic-count"] = "none"
     """Intrinsic reward: count = count_beta / sqrt(N(code)) over the run (Tang et al. 2017);
-    episodic = count_beta for each code reached for the first time in the episode (NGU)."""
+    episodic = count_beta for each code reached for the first time in the episode (NGU);
+    episodic-count = count_beta / sqrt(N(code)) for each first visit in the episode."""
     count_beta: float = 0.1
     count_key: str | None = None
     """Count this info entry (e.g. agent_pos) instead of the observation."""
@@ -139,8 +140,9 @@ class TrainConfig:
     ci_xi: float = 0.1
     """xi: an observation set whose ATE (extra prediction error per episode) lies confidently
     within [-xi, xi] has no causal effect (thci.causal.search.DEFAULT_XI)."""
-    ci_target: Literal["dynamics", "inverse"] = "dynamics"
-    """What p_zeta predicts: next observation and reward, or the action (inverse dynamics)."""
+    ci_target: Literal["dynamics", "reward", "inverse"] = "dynamics"
+    """What p_zeta predicts: next observation and reward (dynamics, Eq. 9), the same judged on
+    the reward alone (reward), or the action (inverse dynamics)."""
     ci_base_steps: int = 400
     """Adam steps of the effect predictor in the first round (fitted once per round, answers
     every intervention)."""

@@ -14,6 +14,13 @@ never sees. Two bonuses are built on these codes:
   somewhere new rather than for dithering, which is what a sparse, far goal at the end of a
   corridor needs (Maze levels 3-4: four goals 11 steps away, 1.5% of random walks reach one).
   Keep beta · (most new codes per episode) well under the task's reward so the task decides.
+* ``episodic-count`` (NGU's product of episodic and life-long novelty): beta / sqrt(N(code))
+  for each code reached for the first time in the episode. Dithering pays nothing (episodic),
+  and what the whole run has rarely reached pays most (count), so the bonus keeps pulling
+  toward the part of the maze no variant has led to yet, and fades as the run covers it. With
+  ``episodic`` alone, an agent that has learned three of Maze L3's four goals wanders for the
+  bonus in the fourth variant and never finds its goal (a wrong goal ends the episode and its
+  bonus stream; wandering does not); with ``count`` alone it dithers between rare cells.
 
 Both are options for every method (``--exploration count|episodic``), so baselines can be
 compared under the same exploration.
@@ -99,9 +106,13 @@ class CountBonus(ExplorationBonus):
         self.counts = np.zeros(0, dtype=np.int64)
 
     def bonus(self, codes: np.ndarray, dones: np.ndarray) -> np.ndarray:
+        return self.beta / np.sqrt(self.count_visits(codes))
+
+    def count_visits(self, codes: np.ndarray) -> np.ndarray:
+        """Count the visits `codes` (T, N); returns (T, N) N(code) including them."""
         self.counts = _grow(self.counts, int(codes.max()) + 1, axis=0)
         self.counts += np.bincount(codes.ravel(), minlength=len(self.counts))
-        return self.beta / np.sqrt(self.counts[codes])
+        return self.counts[codes]
 
     def state_dict(self) -> dict[str, Any]:
         return {**super().state_dict(), "counts": torch.as_tensor(self.counts)}
@@ -124,6 +135,10 @@ class EpisodicNoveltyBonus(ExplorationBonus):
         self.visited = np.zeros((num_envs, 0), dtype=bool)  # (N, codes seen so far)
 
     def bonus(self, codes: np.ndarray, dones: np.ndarray) -> np.ndarray:
+        return self.beta * self.first_visits(codes, dones)
+
+    def first_visits(self, codes: np.ndarray, dones: np.ndarray) -> np.ndarray:
+        """(T, N) bool: `codes` (T, N) reached for the first time in its episode."""
         self.visited = _grow(self.visited, int(codes.max()) + 1, axis=1)
         envs = np.arange(codes.shape[1])
         new = np.empty(codes.shape, dtype=bool)
@@ -131,7 +146,7 @@ class EpisodicNoveltyBonus(ExplorationBonus):
             new[t] = ~self.visited[envs, codes[t]]
             self.visited[envs, codes[t]] = True
             self.visited[dones[t]] = False  # the next episode starts with nothing visited
-        return self.beta * new
+        return new
 
     def state_dict(self) -> dict[str, Any]:
         return {**super().state_dict(), "visited": torch.as_tensor(self.visited)}
@@ -139,6 +154,16 @@ class EpisodicNoveltyBonus(ExplorationBonus):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)
         self.visited = state["visited"].numpy().copy()
+
+
+class EpisodicCountBonus(EpisodicNoveltyBonus, CountBonus):
+    """beta / sqrt(N(code)) when the code reached is new in the current episode (NGU).
+
+    N counts every visit of the run, first or not. Args as :class:`EpisodicNoveltyBonus`.
+    """
+
+    def bonus(self, codes: np.ndarray, dones: np.ndarray) -> np.ndarray:
+        return self.beta * self.first_visits(codes, dones) / np.sqrt(self.count_visits(codes))
 
 
 def _grow(array: np.ndarray, size: int, axis: int) -> np.ndarray:
@@ -162,8 +187,7 @@ def make_exploration_bonus(
     """The bonus named by ``--exploration`` (None for "none")."""
     if kind == "count":
         return CountBonus(observation_space, beta, discretizer, count_key)
-    if kind == "episodic":
-        return EpisodicNoveltyBonus(
-            observation_space, beta, discretizer, count_key, num_envs=num_envs
-        )
+    episodic = {"episodic": EpisodicNoveltyBonus, "episodic-count": EpisodicCountBonus}
+    if kind in episodic:
+        return episodic[kind](observation_space, beta, discretizer, count_key, num_envs=num_envs)
     return None
