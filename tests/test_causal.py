@@ -257,3 +257,31 @@ def test_observations_kept_from_earlier_rounds_are_not_tested_again(search):
     result = search(_TableEstimator(bounds), keep=np.array([0]))
     assert sorted(result.causal.tolist()) == [0, 1]
     assert all(0 not in r.codes for r in result.interventions)
+
+
+def _where_and_what_episodes(num_episodes: int, seed: int) -> list[PoolEpisode]:
+    """o_1 in {1, 2} decides the final reward (1 iff o_1 = 1); o_2 in {3, 4} decides o_5 (5 or
+    6): an effect on the next observation only. Every other observation is a distractor 7-9."""
+    rng = np.random.default_rng(seed)
+    episodes = []
+    for _ in range(num_episodes):
+        first, second = rng.integers(1, 3), rng.integers(3, 5)
+        codes = rng.integers(7, 10, size=7)
+        codes[0], codes[1], codes[4] = first, second, 5 if second == 3 else 6
+        rewards = np.zeros(6, dtype=np.float32)
+        rewards[-1] = float(first == 1)
+        episodes.append(PoolEpisode(codes, rng.integers(0, 4, size=6), rewards))
+    return episodes
+
+
+def test_reward_target_drops_what_only_predicts_the_next_observation():
+    pool = pad_episodes(_where_and_what_episodes(1200, seed=5))
+    kept = {}
+    for target in ("dynamics", "reward"):
+        with torch.random.fork_rng():
+            estimator = EffectEstimator(pool, 4, PredictorConfig(target=target, seed=0))
+        kept[target] = set(t_hci(estimator, z=4).causal.tolist())
+    # one of each complementary pair suffices (the absence of 1 tells that o_1 was 2)
+    assert len(kept["dynamics"] & {1, 2}) >= 1 and len(kept["dynamics"] & {3, 4}) >= 1
+    assert len(kept["reward"] & {1, 2}) >= 1 and not kept["reward"] & {3, 4}
+    assert not (kept["dynamics"] | kept["reward"]) & {7, 8, 9}
