@@ -219,6 +219,17 @@ def test_t_hci_keeps_a_part_too_rare_to_split_whole():
     assert split.causal.tolist() == [1] and sorted(split.eliminated.tolist()) == [0, 2, 3]
 
 
+def test_t_hci_tests_rare_candidates_instead_of_keeping_them_untested():
+    # a later round: codes 2 and 3 are kept from earlier rounds; 0 and 1 never occur in a
+    # held-out history (e.g. terminal goals), so nothing shows an effect and both go
+    bounds = {0: (0.0, 0.0), 1: (0.0, 0.0), 2: (0.3, 0.5), 3: (0.3, 0.5)}
+    episodes = {0: set(), 1: set(), 2: set(range(20)), 3: set(range(20))}
+    result = t_hci(_TableEstimator(bounds, episodes), z=2, keep=np.array([2, 3]))
+    assert sorted(result.eliminated.tolist()) == [0, 1]
+    assert sorted(result.causal.tolist()) == [2, 3]
+    assert result.num_interventions >= 1
+
+
 def test_support_counts_held_out_episodes_with_the_code_in_a_history():
     planted = generate_planted_episodes(12, num_causal=1, num_episodes=60, seed=2)
     config = PredictorConfig(base_steps=1, ensemble=1)

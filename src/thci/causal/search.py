@@ -169,10 +169,8 @@ def t_hci(
         raise ValueError(f"Z must be at least 2, got {z}")
     started = time.perf_counter()
     search = _Search(estimator, xi)
-    branches = [_candidates(estimator, keep)]
+    branches = [_candidates(estimator, keep)]  # every candidate is tested at least once
     while branches:
-        # A part too rare to test its pieces is kept whole, as an uncertain test would keep it.
-        branches = [b for b in branches if estimator.support(b) >= min_support]
         large = [b for b in branches if len(b) >= z]
         small = [b for b in branches if len(b) < z]
         # All branches of a tree level are split and tested in one batch.
@@ -181,8 +179,9 @@ def t_hci(
         # Branches with fewer than Z observations: test them one by one.
         singles = [np.array([c]) for b in small for c in b]
         search.resolve(singles)
-        branches = [p for p in kept if len(p) > 1]
-        # A kept part of one observation is causal: nothing left to split.
+        # A kept part of one observation is causal: nothing left to split. A part with an
+        # effect too rare to test its pieces is kept whole, as an uncertain test would keep it.
+        branches = [p for p in kept if len(p) > 1 and estimator.support(p) >= min_support]
     return search.result("t-hci", started)
 
 
