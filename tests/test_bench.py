@@ -123,7 +123,8 @@ def test_presets_name_the_papers_methods_and_are_valid():
     quick = load_grid("paper-maze-quick").configs()
     assert len(quick) < len(load_grid("paper-maze").configs())
     level3 = [c for c in quick if c.env == "thci/PaperMaze-L3-v0"]
-    assert all(c.exploration == "count" and c.count_key == "agent_pos" for c in level3)
+    assert all(c.exploration == "episodic-count" and c.count_key == "agent_pos" for c in level3)
+    assert all(c.ent_coef == 0.03 and c.num_steps == 128 for c in level3)
     budgets = {c.method: c.total_steps for c in level3}
     assert budgets["lstm"] == 300_000 and budgets["wmg"] == 4_000  # the method's budget wins
 
