@@ -115,6 +115,24 @@ def test_causal_memory_ignores_removed_observations():
     assert not torch.allclose(logits[0, 4], logits_kept[0, 4], atol=1e-4)
 
 
+@pytest.mark.parametrize("cell", ["lstm", "gru"])
+def test_gated_memory_acts_step_by_step_as_it_trains_on_sequences(cell):
+    # acting feeds one step at a time; training feeds whole sequences (packed kept steps)
+    torch.manual_seed(0)
+    memory = make_memory(cell, 5, 8)
+    x, keep = torch.randn(4, 7, 5), torch.rand(4, 7) < 0.5
+    keep[0], keep[1] = False, True  # a row that keeps nothing and one that keeps everything
+    state = torch.randn(4, memory.state_size)
+    with torch.no_grad():
+        out, final = memory(x, state, keep)
+        step_state, outs = state, []
+        for t in range(7):
+            step_out, step_state = memory(x[:, t : t + 1], step_state, keep[:, t : t + 1])
+            outs.append(step_out)
+    torch.testing.assert_close(torch.cat(outs, dim=1), out)
+    torch.testing.assert_close(step_state, final)
+
+
 def test_taie_is_zero_for_a_perfect_gate_and_one_for_an_inverted_gate():
     generator = torch.Generator().manual_seed(0)
     labels = torch.rand(40, 6, generator=generator) < 0.3

@@ -42,6 +42,10 @@ class RecurrentMemory(Memory):
         if keep is None or bool(keep.all()):
             return self._run(x, state, None)
         _, steps, size = x.shape
+        if steps == 1:  # acting: one step, advanced or not (packing would cost 2x the step)
+            out, final = self._run(x, state, None)
+            final = torch.where(keep, final, state)
+            return torch.where(keep.unsqueeze(-1), out, state[:, None, : self.output_size]), final
         order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)  # kept steps first
         compact = x.gather(1, order.unsqueeze(-1).expand(-1, -1, size))
         kept = keep.sum(dim=1)
