@@ -126,8 +126,12 @@ def test_presets_name_the_papers_methods_and_are_valid():
     assert all(c.exploration == "episodic-count" and c.count_key == "agent_pos" for c in level3)
     assert all(c.ent_coef == 0.03 and c.num_steps == 128 for c in level3)
     assert all((c.update_epochs, c.num_minibatches) == (4, 4) for c in level3 if c.method == "nm")
-    level1_nm = [c for c in load_grid("paper-maze").configs() if c.method == "nm"]
-    assert level1_nm and all(c.update_epochs == 4 for c in level1_nm)
+    paper_nm = [c for c in load_grid("paper-maze").configs() if c.method == "nm"]
+    assert paper_nm and all(c.update_epochs == 4 for c in paper_nm)
+    comparison = load_grid("maze-lstm-vs-thci").configs()
+    assert len(comparison) == 4 * 2 * 5
+    hard = [c for c in comparison if c.env.endswith(("L3-v0", "L4-v0"))]
+    assert all(c.total_steps == 1_000_000 and c.exploration == "episodic-count" for c in hard)
     budgets = {c.method: c.total_steps for c in level3}
     assert budgets["lstm"] == 300_000 and budgets["wmg"] == 4_000  # the method's budget wins
 

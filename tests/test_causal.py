@@ -117,7 +117,7 @@ def test_causal_memory_ignores_removed_observations():
 
 @pytest.mark.parametrize("cell", ["lstm", "gru"])
 def test_gated_memory_acts_step_by_step_as_it_trains_on_sequences(cell):
-    # acting feeds one step at a time; training feeds whole sequences (packed kept steps)
+    # acting feeds one step at a time; training feeds whole sequences (kept steps in front)
     torch.manual_seed(0)
     memory = make_memory(cell, 5, 8)
     x, keep = torch.randn(4, 7, 5), torch.rand(4, 7) < 0.5

@@ -107,6 +107,15 @@ PRESETS: dict[str, dict[str, Any]] = {
         "env_overrides": _budgets(PAPER_MAZE, 200_000, 1_000_000, explore=True),
         "method_overrides": {"nm": NM_TRAIN},
     },
+    # Issue 3's comparison: T-HCI-PPO beside LSTM-PPO on every maze level, 5 seeds
+    # (docs/results/maze-lstm-vs-thci).
+    "maze-lstm-vs-thci": {
+        "envs": list(PAPER_MAZE),
+        "methods": ["lstm", "t-hci"],
+        "seeds": list(range(1, 6)),
+        "train": {"stop_on_solve": True},
+        "env_overrides": _budgets(PAPER_MAZE, 200_000, 1_000_000, explore=True),
+    },
     "paper-maze-quick": {
         "envs": list(PAPER_MAZE),
         "methods": list(PAPER_METHODS),

@@ -71,9 +71,8 @@ class RecurrentMemory(Memory):
         state of a sequence and act one step at a time (see :meth:`forward`), so no gradient
         ever flows through it.
         """
-        last = (kept - 1).clamp(min=0)
         if self.cell == "gru":
-            return out[torch.arange(len(out)), last]
+            return out[torch.arange(len(out)), (kept - 1).clamp(min=0)]
         with torch.no_grad():
             return self._run(compact, state, kept.clamp(min=1))[1]
 

@@ -5,7 +5,7 @@ Every observation the agent reaches is mapped to a code by the same discretizers
 a poor proxy of the state (the maze's corridor codes repeat over many cells), ``count_key``
 codes an info entry the environment reports instead (e.g. ``"agent_pos"``, which every
 built-in environment provides); exploration then uses state information the agent's policy
-never sees. Two bonuses are built on these codes:
+never sees. Three bonuses are built on these codes:
 
 * ``count`` (#Exploration, Tang et al. 2017): beta / sqrt(N(code)), N counting every visit
   so far. Rare observations pay most and the bonus fades as they become familiar.
@@ -22,8 +22,8 @@ never sees. Two bonuses are built on these codes:
   bonus in the fourth variant and never finds its goal (a wrong goal ends the episode and its
   bonus stream; wandering does not); with ``count`` alone it dithers between rare cells.
 
-Both are options for every method (``--exploration count|episodic``), so baselines can be
-compared under the same exploration.
+All are options for every method (``--exploration count|episodic|episodic-count``), so
+baselines can be compared under the same exploration.
 """
 
 from __future__ import annotations
