@@ -224,6 +224,16 @@ def test_a_confidently_negative_ate_keeps_the_set(search):
     assert records and all(r.ate_upper == pytest.approx(-0.2) for r in records)
 
 
+@pytest.mark.parametrize("search", [hci, lambda e: t_hci(e, z=2)])
+def test_only_an_interval_above_xi_confirms_a_cause(search):
+    # code 1: interval above xi (confirmed, final); code 2: straddles xi (undecided: kept for
+    # now, tested again next round); codes 0 and 3: inside [-xi, xi] (eliminated)
+    bounds = {0: (-0.01, 0.01), 1: (0.3, 0.5), 2: (0.02, 0.15), 3: (-0.02, 0.0)}
+    result = search(_TableEstimator(bounds))
+    assert sorted(result.causal.tolist()) == [1, 2]
+    assert result.confirmed.tolist() == [1]
+
+
 def test_t_hci_keeps_a_part_too_rare_to_split_whole():
     # code 1 has the effect; codes 0 and 1 occur in two held-out episodes each, 2 and 3 in 20
     bounds = {0: (-0.01, 0.01), 1: (0.3, 0.5), 2: (-0.01, 0.01), 3: (-0.01, 0.01)}
@@ -285,25 +295,28 @@ def test_observations_kept_from_earlier_rounds_are_not_tested_again(search):
     bounds = {0: (-0.01, 0.01), 1: (0.3, 0.5), 2: (-0.01, 0.01), 3: (-0.02, 0.0)}
     result = search(_TableEstimator(bounds), keep=np.array([0]))
     assert sorted(result.causal.tolist()) == [0, 1]
+    assert sorted(result.confirmed.tolist()) == [0, 1]
     assert all(0 not in r.codes for r in result.interventions)
 
 
 def _where_and_what_episodes(num_episodes: int, seed: int) -> list[PoolEpisode]:
-    """o_1 in {1, 2} decides the final reward (1 iff o_1 = 1); o_2 in {3, 4} decides o_5 (5 or
-    6): an effect on the next observation only. Every other observation is a distractor 7-9."""
+    """A maze in miniature. o_2 in {3, 4} decides *where* the episode ends (the final
+    observation, a goal: 5 or 6); o_1 in {1, 2} decides *which* goal pays (1 pays at 5, 2 at 6).
+    Both change the final reward given the last action; only o_1 changes it given the goal
+    reached. Every other observation is a distractor 7-9."""
     rng = np.random.default_rng(seed)
     episodes = []
     for _ in range(num_episodes):
         first, second = rng.integers(1, 3), rng.integers(3, 5)
         codes = rng.integers(7, 10, size=7)
-        codes[0], codes[1], codes[4] = first, second, 5 if second == 3 else 6
+        codes[0], codes[1], codes[-1] = first, second, 5 if second == 3 else 6
         rewards = np.zeros(6, dtype=np.float32)
-        rewards[-1] = float(first == 1)
+        rewards[-1] = float((first == 1) == (second == 3))
         episodes.append(PoolEpisode(codes, rng.integers(0, 4, size=6), rewards))
     return episodes
 
 
-def test_reward_target_drops_what_only_predicts_the_next_observation():
+def test_reward_target_drops_what_only_decides_where_the_agent_goes():
     pool = pad_episodes(_where_and_what_episodes(1200, seed=5))
     kept = {}
     for target in ("dynamics", "reward"):

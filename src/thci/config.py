@@ -118,9 +118,10 @@ class TrainConfig:
     """Run CI rounds in a worker process beside the RL loop (Fig. 3); results are identical
     either way, as the gate takes effect at the same step."""
     ci_cumulative: bool = True
-    """Observations found causal in a round stay causal in later rounds (they are not tested
-    again). Once the policy acts on a cause, the path it takes tells the outcome as well, and a
-    round on such a pool finds the cause redundant: on Maze L1 the third round (pool of a
+    """Observations confirmed causal in a round (confidence interval above xi) stay causal in
+    later rounds: they are not tested again (undecided ones are). Once the policy acts on a
+    cause, the path it takes tells the outcome as well, and a round on such a pool finds the
+    cause redundant: on Maze L1 the third round (pool of a
     solved policy) kept nothing and success fell from 0.9+ to 0.52."""
     ci_min_episodes: int = 400
     """Episodes the replay pool must hold before the first CI round."""
@@ -140,9 +141,11 @@ class TrainConfig:
     ci_xi: float = 0.1
     """xi: an observation set whose ATE (extra prediction error per episode) lies confidently
     within [-xi, xi] has no causal effect (thci.causal.search.DEFAULT_XI)."""
-    ci_target: Literal["dynamics", "reward", "inverse"] = "dynamics"
-    """What p_zeta predicts: next observation and reward (dynamics, Eq. 9), the same judged on
-    the reward alone (reward), or the action (inverse dynamics)."""
+    ci_target: Literal["dynamics", "reward", "inverse"] = "reward"
+    """What p_zeta predicts: the reward given the transition it pays for (reward: the factor
+    p(r_t | h, o_t, a_t, o_{t+1}) of Eq. 9, what decides the task), next observation and reward
+    (dynamics, Eq. 9 whole: in mazes every corridor code predicts where the agent is), or the
+    action (inverse dynamics). See thci.causal.predictor."""
     ci_base_steps: int = 400
     """Adam steps of the effect predictor in the first round (fitted once per round, answers
     every intervention)."""

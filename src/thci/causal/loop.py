@@ -69,7 +69,7 @@ class CIJob:
         predictor: settings of the effect predictor p_ζ.
         threads: torch threads of the round.
         warm_start: the previous round's p_ζ, continued on this pool (None: fit from scratch).
-        keep: codes found causal in earlier rounds (`ci_cumulative`): kept without a test.
+        keep: codes confirmed causal in earlier rounds (`ci_cumulative`): kept untested.
         min_support: T-HCI splits a part only while it occurs in this many held-out episodes.
     """
 
@@ -189,7 +189,7 @@ class CausalInferenceLoop:
         self.next_round_step = config.ci_every
         self.pending: _PendingRound | None = None
         self.predictor_state: PredictorState | None = None  # the last applied round's p_ζ
-        self.causal_so_far: set[int] = set()  # codes found causal by any applied round
+        self.causal_so_far: set[int] = set()  # codes confirmed causal by any applied round
         self._workers: Pool | None = None
 
     # ------------------------------------------------------------------ the RL loop's side
@@ -306,7 +306,7 @@ class CausalInferenceLoop:
         self.gate.load_state_dict(outcome.gate_state)
         self.predictor_state = outcome.predictor
         result = outcome.result
-        self.causal_so_far.update(int(c) for c in result.causal)
+        self.causal_so_far.update(int(c) for c in result.confirmed)
         same = self.last_result is not None and np.array_equal(
             self.last_result.causal, result.causal
         )
@@ -447,6 +447,7 @@ class CausalInferenceLoop:
                 state["last_observed"].numpy(),
                 state["last_eliminated"].numpy(),
                 state["last_causal"].numpy(),
+                np.array(sorted(state.get("causal_so_far", [])), dtype=np.int64),
             )
         self.stable_rounds = state["stable_rounds"]
         self.next_round_step = state["next_round_step"]

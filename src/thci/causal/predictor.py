@@ -15,12 +15,14 @@ effects do not depend on the time step, and needs no loop over time. A two-layer
 * ``dynamics`` (Eq. 9): a distribution over the next observation's code (codes beyond
   `max_classes` are hashed into that many buckets, a coarsening that can only hide effects,
   never invent them) and the reward; or
-* ``reward``: the dynamics network, but an intervention's effect is judged on the reward
-  part alone (the next-observation head is still fitted and shapes the embeddings). In a maze
-  whose cells repeat codes, the history tells *where* the agent is and so predicts the next
-  observation: every corridor code has a dynamics effect, while only what decides the reward
-  is causal for the task (the paper's labels). On Maze L3 the dynamics target kept 10 of 13
-  codes (TAIE 0.91); see docs/experiments.md for the reward target's figures.
+* ``reward``: the reward alone, given the transition it pays for: p(r_t | h, o_t, a_t,
+  o_{t+1}). This is the second factor of Eq. 9's joint prediction, p(o_{t+1}, r_t | ·) =
+  p(o_{t+1} | ·) · p(r_t | ·, o_{t+1}): the first factor asks where the history says the agent
+  goes, this one what it is paid for getting there. In a maze whose cells repeat codes the
+  history tells *where* the agent is, so every corridor code predicts the next observation
+  (the dynamics target kept 10 of 13 codes on a Maze-L3 pool, TAIE 0.91); once the goal
+  reached is an input, only what decides whether that goal pays is left to predict, which is
+  what the paper's labels call causal.
 * ``inverse``: a distribution over a_t, from [history, o_t, o_{t+1}].
 
 One network for every intervention. Eq. 9 minimizes over ζ separately for each intervention.
@@ -38,8 +40,14 @@ moments) but is off by default: short fine-tunes add arm-to-arm noise of the siz
 effects sought.
 
 Estimator. The per-transition error is the L1 distance of Eq. 9 between the predicted
-distribution and the observed outcome, 2·(1 − p(observed)) / 2 = 1 − p(observed), plus |r̂ −
-r| / max|r| for the reward. For an intervention S with eliminated set O^w:
+distribution and the observed outcome, 2·(1 − p(observed)) / 2 = 1 − p(observed), and the
+Brier score 2·(r̂ − r)² for the reward (rewards divided by max|r|; the head is fitted on the
+squared error). It equals the absolute error |r̂ − r| where a binary reward is a coin flip to
+the predictor (r̂ = 1/2), so the effect of losing what decides a reward is the same, but it
+stays ~0 where the absolute error does not: most transitions pay nothing and are predicted to
+within ~0.004, which an absolute error sums over an episode's ~25 such steps into ~0.1 of noise
+per episode, more than the effect of what decides the reward at the one step it is paid
+(measured on a Maze-L3 pool). For an intervention S with eliminated set O^w:
 
     D_e(S) = Σ_t  1[h_{t-1} contains an observation in S] · (err_{S∪O^w}(t) − err_{O^w}(t))
     ATE(S) = mean of D_e(S) over the n held-out episodes whose history contains S
@@ -53,14 +61,17 @@ O^w only, so the ATE is the effect of S *given* the eliminated set, which is wha
 sequential elimination of the search needs; the environment's own noise, and whatever masking
 O^w costs, hit the control and the intervened arm alike and cancel.
 
-Confidence. p_ζ is an ensemble of M independently initialized predictors (`ensemble`, fitted
-side by side in one batched pass, each with its own random interventions); the ATE is their
-mean, and its confidence interval mean ± z·SE (`confidence_z`) counts two sources of error:
-which episodes were held out (SE² over episodes of the ensemble's D_e) and how p_ζ happened to
-be fitted (the members' variance / M). The second dominates on hard pools: on a Maze-L3 pool
-single fits with different seeds kept the causes in one and dropped all of them in the other.
-The search eliminates a set only when the whole interval lies within [−ξ, ξ]
-(:mod:`thci.causal.search`).
+Confidence and cross-fitting. p_ζ is an ensemble of M independently initialized predictors
+(`ensemble`, fitted side by side in one batched pass, each with its own random
+interventions). The pool's episodes are dealt into M folds and member m is fitted without
+fold m and measured on it, so every episode is held out once: four times the held-out data of a
+25% split at the same cost, which matters on early pools where few episodes show the reward.
+The ATE is the mean D_e over all episodes, and its confidence interval mean ± z·SE
+(`confidence_z`) takes the larger of two variance estimates: the spread of D_e over episodes,
+and the spread of the folds' means, which also holds how each member happened to be fitted (on
+hard pools this dominated: single fits with different seeds kept the causes in one and dropped
+all of them in the other). The search eliminates a set only when the whole interval lies within
+[−ξ, ξ] (:mod:`thci.causal.search`).
 
 Negative estimates. Masking can only remove information, so for a perfect p_ζ no ATE is
 negative. Ours can be: on a Maze-L3 pool of a weak policy, masking the indicator code 2 made
@@ -93,9 +104,8 @@ from torch import nn
 from thci.causal.replay import PoolArrays
 
 Target = Literal["dynamics", "reward", "inverse"]
-# Targets whose network predicts (next observation, reward); "reward" judges effects on the
-# reward part alone.
-DYNAMICS_TARGETS = ("dynamics", "reward")
+REWARD_PART = {"dynamics": 1, "reward": 0}
+"""Which error component is the reward's, for the targets that predict one."""
 REWARD_SCALE_FLOOR = 0.1
 """Smallest reward per episode (in units of max |r|) the reward part of an ATE is divided by."""
 
@@ -128,6 +138,9 @@ class PredictorConfig:
     """Largest rate at which the base fit removes codes from an episode's history (see
     :meth:`EffectEstimator._random_code_dropout`)."""
     holdout_fraction: float = 0.25
+    """With a single predictor (`ensemble` 1), the share of episodes held out of its fit. An
+    ensemble of M ≥ 2 cross-fits instead: member m is fitted without fold m of M and measured on
+    it, so every episode is held out once (see Cross-fitting in the module doc)."""
     confidence_z: float = 2.0
     """The ATE is reported as mean − confidence_z · standard error over held-out episodes."""
     max_classes: int = 128
@@ -146,7 +159,7 @@ class CodeData:
         actions: (E, L) long. rewards: (E, L) float, divided by max |r|.
         valid: (E, L) bool, real transitions.
         next_class: (E, L) long, class of o_{t+1} (dense id, hashed above max_classes).
-        train, test: index tensors of the training and held-out episodes.
+        fold: (E,) long, the ensemble member each episode is held out for (-1: for none).
     """
 
     def __init__(self, pool: PoolArrays, config: PredictorConfig, num_actions: int) -> None:
@@ -167,10 +180,24 @@ class CodeData:
         self.num_actions = num_actions
         generator = torch.Generator().manual_seed(config.seed)
         order = torch.randperm(len(self.ids), generator=generator)
-        num_test = max(1, round(config.holdout_fraction * len(order)))
-        self.test, self.train = order[:num_test], order[num_test:]
-        if len(self.train) == 0:
-            self.train = self.test
+        self.fold = torch.full((len(order),), -1, dtype=torch.long)
+        if config.ensemble >= 2:
+            self.fold[order] = torch.arange(len(order)) % config.ensemble
+            self.train = order  # every episode is fitted on by all members but one
+        else:
+            num_test = max(1, round(config.holdout_fraction * len(order)))
+            self.fold[order[:num_test]] = 0
+            self.train = order[num_test:] if num_test < len(order) else order
+        self.test = (self.fold >= 0).nonzero().flatten()  # held out for some member
+
+    def held_out(self, member: int) -> torch.Tensor:
+        """Index tensor of the episodes member `member` is measured on (not fitted on)."""
+        return (self.fold == member).nonzero().flatten()
+
+    def fit_weights(self, episodes: torch.Tensor, members: torch.Tensor) -> torch.Tensor:
+        """(K, B) 1.0 where model k (standing for ensemble member `members[k]`) is fitted on
+        the episode, 0.0 where the episode is held out for it."""
+        return (self.fold[episodes].unsqueeze(0) != members.unsqueeze(1)).float()
 
     def dense_ids(self, codes: np.ndarray) -> np.ndarray:
         """Dense ids of `codes` that are in Ô (others are dropped)."""
@@ -216,9 +243,10 @@ class BatchedPredictor(nn.Module):
         super().__init__()
         d, h = config.embed_dim, config.hidden_size
         self.target, self.num_actions = config.target, num_actions
-        dynamics = config.target in DYNAMICS_TARGETS
-        extra = num_actions if dynamics else d
-        categories = num_classes if dynamics else num_actions
+        # Inputs beside the history and o_t, and categories of the classification head:
+        # dynamics classifies o_{t+1}, inverse classifies a_t, reward has no categorical head.
+        extra = {"dynamics": num_actions, "reward": num_actions + d, "inverse": d}[config.target]
+        categories = {"dynamics": num_classes, "reward": 0, "inverse": num_actions}[config.target]
         # The categorical head is padded to a multiple of 16 logits, the padding pinned at
         # -1e4 (probability exactly 0 in float32): torch's CPU log-softmax is ~10x slower on a
         # width like 15 than on 16, and it was the largest cost of a CI round.
@@ -226,7 +254,7 @@ class BatchedPredictor(nn.Module):
         offset = torch.zeros(self.num_logits)
         offset[categories:] = -1e4
         self.register_buffer("logit_offset", offset)
-        out = self.num_logits + (1 if dynamics else 0)
+        out = self.num_logits + (1 if config.target in REWARD_PART else 0)
         self.embed = nn.Parameter(torch.zeros(num_models, num_codes, d))
         self.mask_embed = nn.Parameter(torch.zeros(num_models, num_codes, d))
         self.step_embed = nn.Parameter(torch.zeros(num_models, max_steps, d))
@@ -260,7 +288,7 @@ class BatchedPredictor(nn.Module):
             self.step_embed[:, :steps] = old["step_embed"][:, :steps]
             self.w1.copy_(old["w1"])
             self.b1.copy_(old["b1"])
-            if self.target == "inverse":  # classes are the actions
+            if self.target != "dynamics":  # the outputs are the actions or the reward alone
                 self.w2.copy_(old["w2"])
                 self.b2.copy_(old["b2"])
                 return
@@ -270,15 +298,17 @@ class BatchedPredictor(nn.Module):
                 self.w2[..., new_rows] = old["w2"][..., old_rows]
                 self.b2[..., new_rows] = old["b2"][..., old_rows]
 
-    def replicate(self, copies: int) -> BatchedPredictor:
-        """A (M·copies)-model predictor: `copies` consecutive copies of each of the M models."""
+    def replicate(self, copies: int, member: int | None = None) -> BatchedPredictor:
+        """A (M·copies)-model predictor: `copies` consecutive copies of each of the M models;
+        with `member`, `copies` copies of that model alone."""
         clone = BatchedPredictor.__new__(BatchedPredictor)
         nn.Module.__init__(clone)
         clone.target, clone.num_actions = self.target, self.num_actions
         clone.num_logits = self.num_logits
         clone.register_buffer("logit_offset", self.logit_offset)
+        chosen = slice(None) if member is None else slice(member, member + 1)
         for name in ("embed", "mask_embed", "step_embed", "w1", "b1", "w2", "b2"):
-            value = getattr(self, name).detach().repeat_interleave(copies, dim=0)
+            value = getattr(self, name).detach()[chosen].repeat_interleave(copies, dim=0)
             setattr(clone, name, nn.Parameter(value))
         return clone
 
@@ -315,11 +345,14 @@ class BatchedPredictor(nn.Module):
         seen = torch.cat((torch.full_like(seen[:, :, :1], float("-inf")), seen[:, :, :-1]), 2)
         seen = seen.masked_fill(torch.isinf(seen), 0.0)
         current = emb[:, :, :steps]
-        if self.target in DYNAMICS_TARGETS:
-            extra = nn.functional.one_hot(actions, self.num_actions).to(emb.dtype)
-            extra = extra.unsqueeze(0).expand(num_models, -1, -1, -1)
-        else:
-            extra = emb[:, :, 1 : steps + 1]
+        action = nn.functional.one_hot(actions, self.num_actions).to(emb.dtype)
+        action = action.unsqueeze(0).expand(num_models, -1, -1, -1)
+        following = emb[:, :, 1 : steps + 1]  # o_{t+1}, never masked
+        extra = {
+            "dynamics": (action,),
+            "reward": (action, following),
+            "inverse": (following,),
+        }[self.target]
         # The step embedding lets the predictor know *when* an outcome arrives (e.g. a reward at the
         # horizon); which observations matter stays a question about the history.
         when = self.step_embed[:, :steps].unsqueeze(1).expand(-1, batch, -1, -1)
@@ -328,23 +361,53 @@ class BatchedPredictor(nn.Module):
         # and "c is absent" (c was not observed) stays distinct from "c is masked".
         intervened = torch.bmm(masked_codes.to(emb.dtype), self.mask_embed)  # (K, 1|B, d)
         intervened = intervened.unsqueeze(2).expand(-1, batch, steps, -1)
-        x = torch.cat((seen, current, extra, when, intervened), dim=-1)[:, valid]
+        x = torch.cat((seen, current, *extra, when, intervened), dim=-1)[:, valid]
         hidden = torch.relu(torch.baddbmm(self.b1, x, self.w1))
         return torch.baddbmm(self.b2, hidden, self.w2)
 
-    def errors_and_loss(
+    def errors(
         self,
         data: CodeData,
         episodes: torch.Tensor,
         masked: torch.Tensor,
         masked_codes: torch.Tensor,
         transitions: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-transition errors (C, K, B, L') (Eq. 9's L1 distance; 0 on padding) and the
-        training loss (K,). L' is the longest episode among `episodes` (the batch is cropped to
-        it). C = 2 error components for dynamics (next observation, reward), 1 for inverse.
-        `transitions` (B, L'), if given, limits the predictions to those transitions (errors
-        are 0 elsewhere): the history summary still runs over every step."""
+    ) -> torch.Tensor:
+        """Per-transition errors (C, K, B, L') (module doc, Estimator; 0 on padding). L' is the
+        longest episode among `episodes` (the batch is cropped to it). C = 2 error components
+        for dynamics (next observation, reward), else 1. `transitions` (B, L'), if given,
+        limits the predictions to those transitions (errors are 0 elsewhere): the history
+        summary still runs over every step."""
+        flat_errors, _, valid = self._terms(data, episodes, masked, masked_codes, transitions)
+        errors = flat_errors.new_zeros(*flat_errors.shape[:2], *valid.shape)
+        errors[:, :, valid] = flat_errors
+        return errors
+
+    def loss(
+        self,
+        data: CodeData,
+        episodes: torch.Tensor,
+        masked: torch.Tensor,
+        masked_codes: torch.Tensor,
+        weights: torch.Tensor,
+    ) -> torch.Tensor:
+        """The training loss of each model (K,): the mean over its transitions of the negative
+        log-likelihood (squared error for the reward), episodes weighed by `weights` (K, B)
+        (cross-fitting gives a member's held-out fold weight 0)."""
+        _, per_step, valid = self._terms(data, episodes, masked, masked_codes)
+        step_weights = weights.unsqueeze(-1).expand(-1, -1, valid.shape[1])[:, valid]
+        return (per_step * step_weights).sum(dim=1) / step_weights.sum(dim=1).clamp(min=1)
+
+    def _terms(
+        self,
+        data: CodeData,
+        episodes: torch.Tensor,
+        masked: torch.Tensor,
+        masked_codes: torch.Tensor,
+        transitions: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Errors (C, K, n) and loss terms (K, n) of the n predicted transitions, and where
+        they are (B, L')."""
         valid = data.valid[episodes]
         steps = int(valid.sum(dim=1).max())
         valid = valid[:, :steps]
@@ -353,32 +416,37 @@ class BatchedPredictor(nn.Module):
         ids, actions = data.ids[episodes, : steps + 1], data.actions[episodes, :steps]
         out = self(ids, masked[:, :, : steps + 1], masked_codes, actions, valid)  # (K, n, out)
         num_models = out.shape[0]
-        if self.target in DYNAMICS_TARGETS:
+        true_reward = data.rewards[episodes, :steps][valid].unsqueeze(0)
+        if self.target == "dynamics":
             logits, reward = out[..., :-1] + self.logit_offset, out[..., -1]
             target = data.next_class[episodes, :steps][valid].expand(num_models, -1)
-            true_reward = data.rewards[episodes, :steps][valid].unsqueeze(0)
             nll = nn.functional.cross_entropy(
                 logits.flatten(0, 1), target.flatten(), reduction="none"
             ).view_as(reward)
-            flat_errors = torch.stack((1 - torch.exp(-nll), (reward - true_reward).abs()))
-            per_step = nll + data.reward_weight * (reward - true_reward).pow(2)
-        else:
-            target = actions[valid].expand(num_models, -1)
-            nll = nn.functional.cross_entropy(
-                (out + self.logit_offset).flatten(0, 1), target.flatten(), reduction="none"
-            ).view(num_models, -1)
-            flat_errors = (1 - torch.exp(-nll)).unsqueeze(0)
-            per_step = nll
-        errors = flat_errors.new_zeros(len(flat_errors), num_models, *valid.shape)
-        errors[:, :, valid] = flat_errors
-        return errors, per_step.mean(dim=1)
+            squared = (reward - true_reward).pow(2)
+            return (
+                torch.stack((1 - torch.exp(-nll), 2 * squared)),
+                nll + data.reward_weight * squared,
+                valid,
+            )
+        if self.target == "reward":
+            squared = (out[..., -1] - true_reward).pow(2)
+            return 2 * squared.unsqueeze(0), data.reward_weight * squared, valid
+        target = actions[valid].expand(num_models, -1)
+        nll = nn.functional.cross_entropy(
+            (out + self.logit_offset).flatten(0, 1), target.flatten(), reduction="none"
+        ).view(num_models, -1)
+        return (1 - torch.exp(-nll)).unsqueeze(0), nll, valid
 
 
-def _replicate_state(state: dict[str, Any], copies: int) -> dict[str, Any]:
-    """The Adam state_dict of a BatchedPredictor for its :meth:`BatchedPredictor.replicate`."""
+def _replicate_state(state: dict[str, Any], copies: int, member: int) -> dict[str, Any]:
+    """The Adam state_dict of a BatchedPredictor for its
+    :meth:`BatchedPredictor.replicate` (`copies`, `member`)."""
     per_param = {
         index: {
-            key: value.repeat_interleave(copies, dim=0) if value.dim() > 0 else value
+            key: value[member : member + 1].repeat_interleave(copies, dim=0)
+            if value.dim() > 0
+            else value
             for key, value in entry.items()
         }
         for index, entry in state["state"].items()
@@ -453,7 +521,8 @@ class EffectEstimator:
                 warm_start, self.data.observed, classes_are_codes=largest <= config.max_classes
             )
             steps = config.warm_steps
-        self._base_optimizer = self._fit(self.base, self._random_code_dropout, steps)
+        members = torch.arange(config.ensemble)
+        self._base_optimizer = self._fit(self.base, members, self._random_code_dropout, steps)
 
     def support(self, codes: np.ndarray) -> int:
         """Held-out episodes whose history (before their last transition) holds any of
@@ -494,12 +563,14 @@ class EffectEstimator:
     def _fit(
         self,
         model: BatchedPredictor,
+        members: torch.Tensor,
         masks,
         steps: int,
         optimizer_state: dict[str, Any] | None = None,
     ) -> torch.optim.Adam:
         """Adam on minibatches of training episodes; the minibatch order depends only on the
         seed, so every model fine-tuned for the same number of steps sees the same batches.
+        Model k stands for ensemble member `members[k]` and skips the episodes held out for it.
         `optimizer_state` continues an earlier fit's Adam moments."""
         optimizer = torch.optim.Adam(model.parameters(), lr=self.config.learning_rate)
         if optimizer_state is not None:
@@ -511,7 +582,8 @@ class EffectEstimator:
         size = min(self.config.batch_episodes, by_length, len(train))
         for _ in range(steps):
             episodes = train[torch.randint(len(train), (size,), generator=generator)]
-            _, loss = model.errors_and_loss(self.data, episodes, *masks(episodes))
+            weights = self.data.fit_weights(episodes, members)
+            loss = model.loss(self.data, episodes, *masks(episodes), weights)
             optimizer.zero_grad()
             loss.sum().backward()
             optimizer.step()
@@ -564,79 +636,90 @@ class EffectEstimator:
         self, interventions: list[Intervention], eliminated: np.ndarray
     ) -> EffectEstimate:
         """:meth:`ate` for interventions evaluated side by side in one pass."""
-        # Arm 0 is the control: O^w masked, nothing else; it is fine-tuned on the same batches,
-        # so what masking O^w (or fine-tuning) costs cancels out of every ATE.
+        # Arm 0 is the control: O^w masked, nothing else (fine-tuned on the same batches when
+        # fine-tuning), so what masking O^w costs cancels out of every ATE.
         control = Intervention(np.zeros(0, dtype=np.int64))
-        arms, members = len(interventions) + 1, self.config.ensemble
         masks = self._mask_builder([control, *interventions], eliminated)
-
-        test = self.data.test
-        masked, masked_codes, tested = masks(test)
-        steps = int(self.data.valid[test].sum(dim=1).max())
-        # transition t counts when a tested observation lies in h_{t-1} (positions < t)
-        seen = torch.cummax(tested[1:, :, :steps].int(), dim=2).values.bool()
-        applies = torch.cat((torch.zeros_like(seen[:, :, :1]), seen[:, :, :-1]), dim=2)
-        applies &= self.data.valid[test, :steps].unsqueeze(0)
-        # Only the held-out transitions some intervention applies to enter an ATE, so only
-        # they are predicted: a rare observation's intervention touches a few episodes, and
-        # on BabyAI pools (thousands of codes) this is most of the search's cost.
-        needed = applies.any(dim=0)  # (E_test, L')
-        hit_any = needed.any(dim=1)
-        if not hit_any.any():  # no held-out history holds a tested observation: no evidence
-            zeros = np.zeros(len(interventions))
-            return EffectEstimate(zeros, zeros.copy(), zeros.copy())
-        reward_scale = self.data.rewards[test].abs().sum(dim=1).mean()
-        test, needed, applies = test[hit_any], needed[hit_any], applies[:, hit_any]
-        masked = masked[:, hit_any]
-
-        model = self.base.replicate(arms)
-        if self.config.finetune_steps > 0:
-
-            def member_masks(episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-                masked, masked_codes, _ = masks(episodes)  # the arms' masks, for every member
-                return masked.repeat(members, 1, 1), masked_codes.repeat(members, 1, 1)
-
-            # Fine-tuning continues the base fit's Adam moments: a fresh Adam's first steps
-            # move every weight by about the learning rate whatever its gradient, noise that
-            # would differ between arms and read as (negative or positive) effects.
-            self._fit(
-                model,
-                member_masks,
-                self.config.finetune_steps,
-                _replicate_state(self._base_optimizer.state_dict(), arms),
-            )
-        with torch.no_grad():
-            errors, _ = model.errors_and_loss(
-                self.data,
-                test,
-                masked.repeat(members, 1, 1),
-                masked_codes.repeat(members, 1, 1),
-                transitions=needed,
-            )
-        errors = errors.unflatten(1, (members, arms))  # (C, M, arms, E_hit, L'')
-        applies = applies[..., : errors.shape[-1]]  # L'' <= L': the hit episodes' longest
-        # D_e per member: (C, M, K, E_hit); episodes not hit add 0 to every sum below
-        extra = ((errors[:, :, 1:] - errors[:, :, :1]) * applies).sum(dim=-1)
-        if self.config.target in DYNAMICS_TARGETS:
+        # Each member is measured on the fold it was not fitted on (cross-fitting).
+        folds = [
+            self._fold_effects(member, held_out, masks, len(interventions))
+            for member in range(self.config.ensemble)
+            if len(held_out := self.data.held_out(member)) > 0
+        ]
+        extra = torch.cat([f[0] for f in folds], dim=-1)  # (C, K, E): D_e of each episode
+        hit = torch.cat([f[1] for f in folds], dim=-1)  # (K, E): episodes S applies to
+        if self.config.target in REWARD_PART:
             # The reward part is measured against how much reward there is to predict: a sparse
             # reward (2% of maze episodes early on) would otherwise dilute the effect of what
             # decides it below any threshold, next to observations that matter every step. The
             # floor keeps a nearly reward-free pool from amplifying noise without bound.
-            extra[1] /= max(float(reward_scale), REWARD_SCALE_FLOOR)
-        hit = applies.any(dim=2)  # (K, E_hit): episodes where the intervention applies
+            reward_scale = float(self.data.rewards[self.data.test].abs().sum(dim=1).mean())
+            extra[REWARD_PART[self.config.target]] /= max(reward_scale, REWARD_SCALE_FLOOR)
         count = hit.sum(dim=1).clamp(min=2)
-        member_means = extra.sum(dim=-1) / count  # (C, M, K)
-        mean = member_means.mean(dim=1)  # (C, K): the ensemble's ATE
-        # Two sources of uncertainty: which episodes were held out (the spread of the
-        # ensemble's D_e over them) and how the predictors were fitted (the members' spread).
-        ensemble_extra = extra.mean(dim=1)
-        episode_var = ((ensemble_extra - mean.unsqueeze(-1)) * hit).pow(2).sum(dim=-1) / (count - 1)
-        fit_var = member_means.var(dim=1) if members > 1 else torch.zeros_like(mean)
-        margin = self.config.confidence_z * (episode_var / count + fit_var / members).sqrt()
-        if self.config.target == "reward":  # the next-observation part only shapes the fit
-            mean, margin = mean[1:], margin[1:]
+        mean = extra.sum(dim=-1) / count  # (C, K): the ATE
+        # Two estimates of the ATE's variance; the larger counts. Over episodes: the spread of
+        # D_e. Over folds: the spread of the members' means, which also holds how each member
+        # happened to be fitted (on hard pools this dominated: single fits with different seeds
+        # kept the causes of a Maze-L3 pool in one and dropped all of them in the other).
+        episode_var = ((extra - mean.unsqueeze(-1)) * hit).pow(2).sum(dim=-1) / (count - 1)
+        variance = episode_var / count
+        if len(folds) > 1:
+            fold_means = torch.stack(
+                [f[0].sum(dim=-1) / f[1].sum(dim=-1).clamp(min=1) for f in folds], dim=1
+            )  # (C, folds, K)
+            if self.config.target in REWARD_PART:
+                fold_means[REWARD_PART[self.config.target]] /= max(reward_scale, REWARD_SCALE_FLOOR)
+            variance = torch.maximum(variance, fold_means.var(dim=1) / len(folds))
+        margin = self.config.confidence_z * variance.sqrt()
         return EffectEstimate(
             mean.max(dim=0).values.numpy(),
             (mean - margin).min(dim=0).values.numpy(),
             (mean + margin).max(dim=0).values.numpy(),
         )
+
+    def _fold_effects(
+        self, member: int, episodes: torch.Tensor, masks, num_interventions: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """D_e of each intervention on the episodes held out for `member` (C, K, E_m) and
+        where it applies (K, E_m): the member's extra error with S ∪ O^w masked over O^w
+        masked, summed over the transitions whose history holds an observation of S."""
+        arms = num_interventions + 1
+        components = 2 if self.config.target == "dynamics" else 1
+        masked, masked_codes, tested = masks(episodes)
+        steps = int(self.data.valid[episodes].sum(dim=1).max())
+        # transition t counts when a tested observation lies in h_{t-1} (positions < t)
+        seen = torch.cummax(tested[1:, :, :steps].int(), dim=2).values.bool()
+        applies = torch.cat((torch.zeros_like(seen[:, :, :1]), seen[:, :, :-1]), dim=2)
+        applies &= self.data.valid[episodes, :steps].unsqueeze(0)
+        hit = applies.any(dim=2)  # (K, E_m)
+        extra = torch.zeros(components, num_interventions, len(episodes))
+        # Only the transitions some intervention applies to enter an ATE, so only they are
+        # predicted: a rare observation's intervention touches a few episodes, and on BabyAI
+        # pools (thousands of codes) this is most of the search's cost.
+        needed = applies.any(dim=0)  # (E_m, L')
+        hit_any = needed.any(dim=1)
+        if not hit_any.any():
+            return extra, hit
+        model = self.base.replicate(arms, member=member)
+        if self.config.finetune_steps > 0:
+            # Fine-tuning continues the base fit's Adam moments: a fresh Adam's first steps
+            # move every weight by about the learning rate whatever its gradient, noise that
+            # would differ between arms and read as (negative or positive) effects.
+            self._fit(
+                model,
+                torch.full((arms,), member),
+                lambda batch: masks(batch)[:2],
+                self.config.finetune_steps,
+                _replicate_state(self._base_optimizer.state_dict(), arms, member),
+            )
+        with torch.no_grad():
+            errors = model.errors(
+                self.data,
+                episodes[hit_any],
+                masked[:, hit_any],
+                masked_codes,
+                transitions=needed[hit_any],
+            )  # (C, arms, E_hit, L'')
+        applies = applies[:, hit_any, : errors.shape[-1]]
+        extra[:, :, hit_any] = ((errors[:, 1:] - errors[:, :1]) * applies).sum(dim=-1)
+        return extra, hit

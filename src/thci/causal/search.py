@@ -16,12 +16,21 @@ parts first checks their union in one more intervention; only when that union ha
 are the parts resolved one at a time. Causal verdicts never need re-checking: masking more can
 only lose information (the ATE is monotone in the masked set).
 
-A set is eliminated only when its ATE is confidently near zero: its whole confidence
-interval lies within [−ξ, ξ] (an equivalence test). An uncertain estimate keeps the set, and
-so does a confidently negative one: a true ATE is never negative, so it means p_ζ is
-unreliable for that set (see the predictor's module doc). A wrongly kept set costs
-compression; a wrongly eliminated cause is gone from the agent's memory, and since the
-policy then stops acting on it, the pool stops showing its effect.
+A test has three outcomes, by where the ATE's confidence interval lies against the band
+[−ξ, ξ]:
+
+* inside it: no effect, the set is eliminated (an equivalence test);
+* entirely above it: a *confirmed* effect. A confirmed single observation is causal for good:
+  the CI loop does not test it again (`keep` in later rounds), because once the policy acts on
+  a cause, the path it takes tells the outcome too and a later pool shows the cause as
+  redundant;
+* anything else: undecided. The set is kept (a wrongly eliminated cause is gone from the
+  agent's memory, a wrongly kept set only costs compression) and tested again in the next
+  round on a larger pool. This covers a confidently negative estimate too: a true ATE is never
+  negative, so it means p_ζ is unreliable for that set (see the predictor's module doc).
+
+Only confirmed observations are final, so what an early, noisy pool keeps by doubt does not
+stay in the causal memory for the rest of the run.
 """
 
 from __future__ import annotations
@@ -65,12 +74,15 @@ class InterventionRecord:
 
 @dataclass
 class CIResult:
-    """Outcome of a search over the observed space Ô (all in original codes)."""
+    """Outcome of a search over the observed space Ô (all in original codes): `causal` is
+    everything not eliminated, `confirmed` the part of it with a confirmed effect (see the
+    module doc)."""
 
     algorithm: str
     observed: np.ndarray
     eliminated: np.ndarray
     causal: np.ndarray
+    confirmed: np.ndarray
     interventions: list[InterventionRecord] = field(default_factory=list)
     seconds: float = 0.0
 
@@ -82,19 +94,26 @@ class CIResult:
 class _Search:
     """Shared machinery: batched tests with sequential-meaning elimination (see module doc)."""
 
-    def __init__(self, estimator: EffectEstimator, xi: float) -> None:
+    def __init__(
+        self, estimator: EffectEstimator, xi: float, confirmed: np.ndarray | None = None
+    ) -> None:
         self.estimator, self.xi = estimator, xi
         self.eliminated = np.zeros(0, dtype=np.int64)  # dense ids
+        self.confirmed = np.zeros(0, dtype=np.int64) if confirmed is None else confirmed
         self.records: list[InterventionRecord] = []
 
-    def _run(self, sets: list[np.ndarray], kind: str = "test") -> np.ndarray:
-        """Whether masking each set (with O^w) has an effect; see :meth:`run_interventions`."""
+    def _run(self, sets: list[np.ndarray], kind: str = "test") -> tuple[np.ndarray, np.ndarray]:
+        """Whether masking each set (with O^w) may have, and has for sure, an effect; see
+        :meth:`run_interventions`."""
         return self.run_interventions([Intervention(s) for s in sets], kind)
 
-    def run_interventions(self, interventions: list[Intervention], kind: str = "test"):
+    def run_interventions(
+        self, interventions: list[Intervention], kind: str = "test"
+    ) -> tuple[np.ndarray, np.ndarray]:
         """One batched ATE estimate of `interventions` given O^w, every one logged. Returns
-        (K,) bool: which may have an effect, i.e. all but those whose confidence interval
-        lies within [−ξ, ξ] (see the module doc)."""
+        two (K,) bool arrays: which may have an effect (all but those whose confidence
+        interval lies within [−ξ, ξ]) and which have a confirmed one (the interval lies above
+        ξ); see the module doc."""
         started = time.perf_counter()
         estimate = self.estimator.ate(interventions, self.eliminated)
         seconds = time.perf_counter() - started
@@ -112,16 +131,24 @@ class _Search:
                     float(estimate.upper[k]),
                 )
             )
-        return (estimate.upper > self.xi) | (estimate.lower < -self.xi)
+        effect = (estimate.upper > self.xi) | (estimate.lower < -self.xi)
+        return effect, estimate.lower > self.xi
 
     def resolve(self, parts: list[np.ndarray]) -> list[np.ndarray]:
-        """Test `parts` given O^w; eliminate those without effect; return those with effect."""
+        """Test `parts` given O^w; eliminate those without effect; return those with effect
+        (a single observation with a confirmed effect is also recorded as confirmed)."""
         kept: list[np.ndarray] = []
         while parts:
-            effect = self._run(parts)
+            effect, confirmed = self._run(parts)
             kept += [p for p, e in zip(parts, effect, strict=True) if e]
+            self.confirmed = np.concatenate(
+                [
+                    self.confirmed,
+                    *(p for p, c in zip(parts, confirmed, strict=True) if c and len(p) == 1),
+                ]
+            )
             drops = [p for p, e in zip(parts, effect, strict=True) if not e]
-            if len(drops) <= 1 or not self._run([np.concatenate(drops)], "union-check")[0]:
+            if len(drops) <= 1 or not self._run([np.concatenate(drops)], "union-check")[0][0]:
                 self._eliminate(drops)
                 return kept
             # Complementary causes among the drops: the first one is truly removable (it was
@@ -143,6 +170,7 @@ class _Search:
             observed.copy(),
             observed[is_eliminated],
             observed[~is_eliminated],
+            np.sort(observed[self.confirmed]),
             self.records,
             time.perf_counter() - started,
         )
@@ -161,14 +189,14 @@ def t_hci(
         estimator: a fitted :class:`EffectEstimator` on the replay pool.
         z: Z, the number of parts each candidate set is split into (≥ 2).
         xi: ξ, the ATE threshold at or below which a part has no causal effect.
-        keep: dense ids that are causal already (found in an earlier round): not tested.
+        keep: dense ids confirmed causal already (in an earlier round): not tested.
         min_support: a part with an effect is split further only while it occurs in at least
             this many held-out episodes; rarer parts are kept whole (see DEFAULT_MIN_SUPPORT).
     """
     if z < 2:
         raise ValueError(f"Z must be at least 2, got {z}")
     started = time.perf_counter()
-    search = _Search(estimator, xi)
+    search = _Search(estimator, xi, keep)
     branches = [_candidates(estimator, keep)]  # every candidate is tested at least once
     while branches:
         large = [b for b in branches if len(b) >= z]
@@ -194,7 +222,7 @@ def hci(
     """History Counterfactual Inference on single observations (Thm. 2): |Ô| interventions,
     run `batch_size` at a time; `keep` as in :func:`t_hci`."""
     started = time.perf_counter()
-    search = _Search(estimator, xi)
+    search = _Search(estimator, xi, keep)
     codes = _candidates(estimator, keep)
     for begin in range(0, len(codes), batch_size):
         search.resolve([np.array([c]) for c in codes[begin : begin + batch_size]])
@@ -222,7 +250,7 @@ def fine_grained_ci(
     causal = set()
     for begin in range(0, len(pairs), batch_size):
         chunk = pairs[begin : begin + batch_size]
-        effect = search.run_interventions([Intervention(np.array([c]), t) for c, t in chunk])
+        effect, _ = search.run_interventions([Intervention(np.array([c]), t) for c, t in chunk])
         causal.update(c for (c, _), e in zip(chunk, effect, strict=True) if e)
     search.eliminated = np.array(sorted(set(range(data.num_codes)) - causal), dtype=np.int64)
     return search.result("fine-grained", started)
