@@ -64,8 +64,9 @@ dynamics error are measured separately: the next-observation part as is, the rew
 the reward target's error) divided by the mean reward per episode (at least
 REWARD_SCALE_FLOOR), so that what decides a sparse reward is not diluted below ξ by the many
 unrewarded episodes. The control arm masks O^w only, so the ATE is the effect of S *given*
-the eliminated set, which is what the sequential elimination of the search needs; the environment's own noise, and whatever masking
-O^w costs, hit the control and the intervened arm alike and cancel.
+the eliminated set, which is what the sequential elimination of the search needs; the
+environment's own noise, and whatever masking O^w costs, hit the control and the intervened
+arm alike and cancel.
 
 Confidence and cross-fitting. p_ζ is an ensemble of M independently initialized predictors
 (`ensemble`, fitted side by side in one batched pass, each with its own random
