@@ -186,7 +186,7 @@ class CausalInferenceLoop:
         self.intervention_log: list[dict[str, Any]] = []
         self.last_result: CIResult | None = None
         self.stable_rounds = 0
-        self.next_round_step = config.ci_every
+        self.next_round_step = 0  # the first round runs once the pool is ready (see due)
         self.pending: _PendingRound | None = None
         self.predictor_state: PredictorState | None = None  # the last applied round's p_ζ
         self.causal_so_far: set[int] = set()  # codes confirmed causal by any applied round
