@@ -234,6 +234,28 @@ def test_only_an_interval_above_xi_confirms_a_cause(search):
     assert result.confirmed.tolist() == [1]
 
 
+class _ComplementEstimator(_TableEstimator):
+    """Codes 0 and 1 are interchangeable causes (each one's absence reveals the other): masking
+    one has no effect, masking both (with O^w) has; codes 2 and 3 have none."""
+
+    def __init__(self) -> None:
+        super().__init__({c: (-0.01, 0.01) for c in range(4)})
+
+    def ate(self, interventions, eliminated):
+        both = [{0, 1} <= {*i.codes.tolist(), *eliminated.tolist()} for i in interventions]
+        lower = np.where(both, 0.3, -0.01)
+        upper = np.where(both, 0.5, 0.01)
+        return EffectEstimate((lower + upper) / 2, lower, upper)
+
+
+@pytest.mark.parametrize("search", [hci, lambda e, prefer: t_hci(e, z=2, prefer=prefer)])
+@pytest.mark.parametrize("prefer", [0, 1])
+def test_of_two_interchangeable_causes_the_one_the_gate_keeps_stays(search, prefer):
+    result = search(_ComplementEstimator(), prefer=np.array([prefer]))
+    assert result.causal.tolist() == [prefer]
+    assert sorted(result.eliminated.tolist()) == sorted({0, 1, 2, 3} - {prefer})
+
+
 def test_t_hci_keeps_a_part_too_rare_to_split_whole():
     # code 1 has the effect; codes 0 and 1 occur in two held-out episodes each, 2 and 3 in 20
     bounds = {0: (-0.01, 0.01), 1: (0.3, 0.5), 2: (-0.01, 0.01), 3: (-0.01, 0.01)}

@@ -70,6 +70,7 @@ class CIJob:
         threads: torch threads of the round.
         warm_start: the previous round's p_ζ, continued on this pool (None: fit from scratch).
         keep: codes confirmed causal in earlier rounds (`ci_cumulative`): kept untested.
+        prefer: codes the current gate keeps: of two interchangeable causes, these stay.
         min_support: T-HCI splits a part only while it occurs in this many held-out episodes.
     """
 
@@ -85,6 +86,7 @@ class CIJob:
     threads: int
     warm_start: PredictorState | None = None
     keep: np.ndarray | None = None
+    prefer: np.ndarray | None = None
     min_support: int = DEFAULT_MIN_SUPPORT
 
 
@@ -111,11 +113,17 @@ def run_ci_job(job: CIJob) -> CIOutcome:
                 job.pool, job.num_actions, job.predictor, warm_start=job.warm_start
             )
             keep = None if job.keep is None else estimator.data.dense_ids(job.keep)
+            prefer = None if job.prefer is None else estimator.data.dense_ids(job.prefer)
             if job.method == "hci":
-                result = hci(estimator, xi=job.xi, keep=keep)
+                result = hci(estimator, xi=job.xi, keep=keep, prefer=prefer)
             else:
                 result = t_hci(
-                    estimator, z=job.z, xi=job.xi, keep=keep, min_support=job.min_support
+                    estimator,
+                    z=job.z,
+                    xi=job.xi,
+                    keep=keep,
+                    min_support=job.min_support,
+                    prefer=prefer,
                 )
             gate = Gate(job.observation_size)
             gate.load_state_dict(job.gate_state)
@@ -275,6 +283,7 @@ class CausalInferenceLoop:
             keep=np.array(sorted(self.causal_so_far), dtype=np.int64)
             if cfg.ci_cumulative
             else None,
+            prefer=None if self.last_result is None else self.last_result.causal.copy(),
             min_support=cfg.ci_min_support,
         )
 

@@ -95,9 +95,14 @@ class _Search:
     """Shared machinery: batched tests with sequential-meaning elimination (see module doc)."""
 
     def __init__(
-        self, estimator: EffectEstimator, xi: float, confirmed: np.ndarray | None = None
+        self,
+        estimator: EffectEstimator,
+        xi: float,
+        confirmed: np.ndarray | None = None,
+        prefer: np.ndarray | None = None,
     ) -> None:
         self.estimator, self.xi = estimator, xi
+        self.prefer = np.zeros(0, dtype=np.int64) if prefer is None else prefer
         self.eliminated = np.zeros(0, dtype=np.int64)  # dense ids
         self.confirmed = np.zeros(0, dtype=np.int64) if confirmed is None else confirmed
         self.records: list[InterventionRecord] = []
@@ -152,7 +157,11 @@ class _Search:
                 self._eliminate(drops)
                 return kept
             # Complementary causes among the drops: the first one is truly removable (it was
-            # tested with the current O^w); the rest must be tested again without it.
+            # tested with the current O^w); the rest must be tested again without it. Which
+            # one goes first decides which of two interchangeable causes stays: the one the
+            # current gate keeps (drops without a preferred code first; the sort is stable),
+            # so that the agent's memory does not swap one for the other from round to round.
+            drops.sort(key=lambda part: bool(np.isin(part, self.prefer).any()))
             self._eliminate(drops[:1])
             parts = drops[1:]
         return kept
@@ -182,6 +191,7 @@ def t_hci(
     xi: float = DEFAULT_XI,
     keep: np.ndarray | None = None,
     min_support: int = DEFAULT_MIN_SUPPORT,
+    prefer: np.ndarray | None = None,
 ) -> CIResult:
     """Tree-based History Counterfactual Inference (Prop. 3) over Ô.
 
@@ -192,11 +202,13 @@ def t_hci(
         keep: dense ids confirmed causal already (in an earlier round): not tested.
         min_support: a part with an effect is split further only while it occurs in at least
             this many held-out episodes; rarer parts are kept whole (see DEFAULT_MIN_SUPPORT).
+        prefer: dense ids the current gate keeps; of interchangeable causes (each of which the
+            other's absence reveals), these are the ones kept.
     """
     if z < 2:
         raise ValueError(f"Z must be at least 2, got {z}")
     started = time.perf_counter()
-    search = _Search(estimator, xi, keep)
+    search = _Search(estimator, xi, keep, prefer)
     branches = [_candidates(estimator, keep)]  # every candidate is tested at least once
     while branches:
         large = [b for b in branches if len(b) >= z]
@@ -218,11 +230,12 @@ def hci(
     xi: float = DEFAULT_XI,
     batch_size: int = 16,
     keep: np.ndarray | None = None,
+    prefer: np.ndarray | None = None,
 ) -> CIResult:
     """History Counterfactual Inference on single observations (Thm. 2): |Ô| interventions,
-    run `batch_size` at a time; `keep` as in :func:`t_hci`."""
+    run `batch_size` at a time; `keep` and `prefer` as in :func:`t_hci`."""
     started = time.perf_counter()
-    search = _Search(estimator, xi, keep)
+    search = _Search(estimator, xi, keep, prefer)
     codes = _candidates(estimator, keep)
     for begin in range(0, len(codes), batch_size):
         search.resolve([np.array([c]) for c in codes[begin : begin + batch_size]])
