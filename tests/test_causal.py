@@ -93,6 +93,22 @@ def test_gate_reproduces_eliminated_set_and_decides_unseen_observations():
     assert gate.keep(unseen).shape == (5,)
 
 
+def test_gate_reverses_a_decision_earlier_rounds_made_confidently():
+    torch.manual_seed(0)
+    observations = torch.eye(15)
+    eliminated = torch.ones(15, dtype=torch.bool)
+    eliminated[[0, 2]] = False
+    gate = Gate(15)
+    for _ in range(8):  # rounds that eliminate code 1 (the gate continues from round to round)
+        gate.fit(observations, eliminated)
+    with torch.no_grad():  # a long run pushes the earlier decisions into saturation
+        gate.net[2].weight.mul_(20.0)
+        gate.net[2].bias.mul_(20.0)
+    eliminated[1] = False  # a later round puts code 1 back
+    assert gate.fit(observations, eliminated).accuracy == 1.0
+    assert torch.equal(gate.keep(observations), ~eliminated)
+
+
 def test_causal_memory_ignores_removed_observations():
     torch.manual_seed(0)
     gate = Gate(6)

@@ -57,7 +57,13 @@ class Gate(nn.Module):
         max_steps: int = 3000,
         learning_rate: float = 1e-2,
     ) -> GateFit:
-        """Minimize Eq. 10 on Ô and activate the gate.
+        """Fit Eq. 10 on Ô and activate the gate.
+
+        Eq. 10's absolute error has a vanishing gradient where the sigmoid saturates, and the
+        gate continues from round to round: a decision made confidently in earlier rounds could
+        not be reversed (Maze L3 seed 5: CI put code 1 back, the gate kept removing it, 12 of 13
+        right). The fit therefore minimizes the log-loss, whose minimizer on Ô is the same
+        membership, and reports Eq. 10's loss.
 
         Args:
             observations: (|Ô|, D), one representative observation per observed code.
@@ -68,8 +74,9 @@ class Gate(nn.Module):
         step = 0
         with torch.enable_grad():
             for step in range(1, max_steps + 1):
-                prob = self(observations)
-                loss = (prob - target).abs().mean()  # Eq. 10
+                logits = self.net(observations).squeeze(-1)
+                prob = torch.sigmoid(logits)
+                loss = nn.functional.binary_cross_entropy_with_logits(logits, target)
                 optimizer.zero_grad()
                 loss.backward()
                 optimizer.step()
