@@ -10,8 +10,9 @@ once per pool (default settings, one torch thread) and runs T-HCI for each ξ on
   truth read from the pool's `info["causal"]` labels where the environment provides them.
 
     .venv/bin/python benchmarks/xi_calibration.py [RUN_DIR ...] [--xis 0.05 0.1 0.2]
+        [--target reward|dynamics|inverse]
 
-Writes benchmarks/results/xi_calibration.json and prints a table.
+Writes benchmarks/results/xi_calibration_<target>.json and prints a table.
 """
 
 from __future__ import annotations
@@ -33,10 +34,11 @@ from thci.causal.synthetic import generate_planted_episodes
 RESULTS = Path(__file__).parent / "results"
 
 
-def planted_rows(seed: int, xis: list[float]) -> list[dict]:
+def planted_rows(seed: int, xis: list[float], target: str) -> list[dict]:
     data = generate_planted_episodes(32, num_causal=2, num_episodes=1500, seed=seed)
     started = time.perf_counter()
-    estimator = EffectEstimator(pad_episodes(data.episodes), 4, PredictorConfig(seed=0))
+    config = PredictorConfig(seed=0, target=target)
+    estimator = EffectEstimator(pad_episodes(data.episodes), 4, config)
     fit = time.perf_counter() - started
     truth = sorted(data.causal_codes.tolist())
     return [
@@ -51,7 +53,7 @@ def planted_rows(seed: int, xis: list[float]) -> list[dict]:
     ]
 
 
-def run_rows(run_dir: Path, xis: list[float]) -> list[dict]:
+def run_rows(run_dir: Path, xis: list[float], target: str) -> list[dict]:
     config, loop = load_ci_loop(run_dir)
     pool = loop.pool.arrays()
     truth = None
@@ -59,9 +61,10 @@ def run_rows(run_dir: Path, xis: list[float]) -> list[dict]:
         labelled = np.concatenate([e.codes[e.causal] for e in loop.pool.episodes])
         truth = loop.describe(np.unique(labelled))
     started = time.perf_counter()
-    estimator = EffectEstimator(pool, loop.num_actions, PredictorConfig(seed=0))
+    estimator = EffectEstimator(pool, loop.num_actions, PredictorConfig(seed=0, target=target))
     fit = time.perf_counter() - started
-    name = f"{config.env} {config.method} s{config.seed}"
+    steps = int(np.sum(pool.valid))
+    name = f"{config.env} {config.method} s{config.seed} ({len(pool.lengths)} ep., {steps} steps)"
     return [
         _row(name, xi, loop.describe(t_hci(estimator, z=config.ci_z, xi=xi).causal), truth, fit)
         for xi in xis
@@ -84,12 +87,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dirs", nargs="*", type=Path)
     parser.add_argument("--xis", type=float, nargs="+", default=[0.05, 0.1, 0.2])
+    parser.add_argument("--target", default="reward", choices=["reward", "dynamics", "inverse"])
     args = parser.parse_args()
     torch.set_num_threads(1)
-    rows = [r for seed in (3, 4) for r in planted_rows(seed, args.xis)]
-    rows += [r for d in args.run_dirs for r in run_rows(d, args.xis)]
+    rows = [r for seed in (3, 4) for r in planted_rows(seed, args.xis, args.target)]
+    rows += [r for d in args.run_dirs for r in run_rows(d, args.xis, args.target)]
+    rows = [{"target": args.target, **r} for r in rows]
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "xi_calibration.json").write_text(json.dumps(rows, indent=2) + "\n")
+    out = RESULTS / f"xi_calibration_{args.target}.json"
+    out.write_text(json.dumps(rows, indent=2) + "\n")
     print("| pool | ξ | kept | labelled causal | missed |")
     print("|---|---|---|---|---|")
     for r in rows:
