@@ -283,7 +283,7 @@ class CausalInferenceLoop:
             keep=np.array(sorted(self.causal_so_far), dtype=np.int64)
             if cfg.ci_cumulative
             else None,
-            prefer=None if self.last_result is None else self.last_result.causal.copy(),
+            prefer=None if self.last_result is None else self.last_result.causal,
             min_support=cfg.ci_min_support,
         )
 

@@ -148,14 +148,10 @@ class _Search:
         while parts:
             effect, confirmed = self._run(parts)
             kept += [p for p, e in zip(parts, effect, strict=True) if e]
-            self.confirmed = np.concatenate(
-                [
-                    self.confirmed,
-                    *(p for p, c in zip(parts, confirmed, strict=True) if c and len(p) == 1),
-                ]
-            )
+            singles = [p for p, c in zip(parts, confirmed, strict=True) if c and len(p) == 1]
+            self.confirmed = np.concatenate([self.confirmed, *singles])
             drops = [p for p, e in zip(parts, effect, strict=True) if not e]
-            if len(drops) <= 1 or not self._run([np.concatenate(drops)], "union-check")[0][0]:
+            if len(drops) <= 1 or not self._union_has_effect(drops):
                 self._eliminate(drops)
                 return kept
             # Complementary causes among the drops: the first one is truly removable (it was
@@ -167,6 +163,11 @@ class _Search:
             self._eliminate(drops[:1])
             parts = drops[1:]
         return kept
+
+    def _union_has_effect(self, parts: list[np.ndarray]) -> bool:
+        """Whether masking all `parts` together (with O^w) may have an effect."""
+        effect, _ = self._run([np.concatenate(parts)], "union-check")
+        return bool(effect[0])
 
     def _eliminate(self, parts: list[np.ndarray]) -> None:
         if parts:
