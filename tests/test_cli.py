@@ -56,6 +56,8 @@ def assert_one_line_error(capsys, code: int, *fragments: str) -> None:
         (["--num-envs", "0"], ["--num-envs"]),
         (["--num-minibatches", "32"], ["--num-minibatches"]),
         (["--resume"], ["--run-dir"]),
+        (["--count-memory"], ["--count-memory", "--exploration"]),
+        (["--count-memory", "--exploration", "count", "--method", "sai"], ["attention"]),
     ],
 )
 def test_bad_train_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, fragments):
@@ -275,11 +277,13 @@ def test_count_key_missing_from_info_is_refused_before_anything_is_written(tmp_p
     assert not run_dir.exists()
 
 
-@pytest.mark.parametrize("kind", ["count", "episodic-count"])
-def test_count_exploration_adds_bonus_and_resumes_to_the_same_result(tmp_path, kind):
+@pytest.mark.parametrize(
+    "exploration", [["count"], ["episodic-count"], ["episodic-count", "--count-memory"]]
+)
+def test_count_exploration_adds_bonus_and_resumes_to_the_same_result(tmp_path, exploration):
     args = [
         "--exploration",
-        kind,
+        *exploration,
         "--count-key",
         "agent_pos",
         "--count-beta",

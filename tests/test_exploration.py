@@ -1,10 +1,17 @@
 """Intrinsic rewards against hand-computed cases."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import torch
 from gymnasium import spaces
 
-from thci.rl.exploration import CountBonus, EpisodicCountBonus, EpisodicNoveltyBonus
+from thci.rl.exploration import (
+    CountBonus,
+    EpisodicCountBonus,
+    EpisodicNoveltyBonus,
+    MemoryContent,
+)
 
 SPACE = spaces.Box(0, 1, (3,))
 
@@ -53,4 +60,49 @@ def test_episodic_count_bonus_pays_first_visits_by_run_wide_rarity():
     got = bonus.bonus(np.array([[5, 5], [1, 7]]), np.array([[1, 0], [0, 0]], dtype=bool))
     np.testing.assert_allclose(got, [[1 / np.sqrt(5), 0.0], [1 / np.sqrt(3), 1.0]])
     state = bonus.state_dict()
-    assert set(state) == {"discretizer", "counts", "visited"}
+    assert set(state) == {"discretizer", "pairs", "memory", "counts", "visited"}
+
+
+def _digests(memory, codes, kept, starts):
+    """Digests of MemoryContent for (T, N) integer codes given as one-hot observations."""
+    obs = torch.nn.functional.one_hot(torch.as_tensor(codes), 3).float()
+    return memory.digests(obs, np.array(kept, dtype=bool), np.array(starts, dtype=bool))
+
+
+def test_memory_content_identifies_the_set_kept_so_far_in_the_episode():
+    memory = MemoryContent(SPACE, "auto", num_envs=2)
+    # env 0 keeps code 0, then code 1, then code 0 again; env 1 keeps code 1, drops code 0,
+    # then keeps code 0 (the same set as env 0's at t=1, reached in another order)
+    codes = [[0, 1], [1, 0], [0, 0]]
+    kept = [[1, 1], [1, 0], [1, 1]]
+    starts = [[1, 1], [0, 0], [0, 0]]
+    got = _digests(memory, codes, kept, starts)
+    assert got[1, 0] != got[0, 0] != 0  # the set grew
+    assert got[2, 0] == got[1, 0]  # code 0 was already held
+    assert got[1, 1] == got[0, 1]  # a removed observation leaves the memory as it was
+    assert got[2, 1] == got[1, 0]  # {0, 1} in either order
+    # env 0 starts a new episode: its memory holds only what it keeps from then on ({1}, as
+    # env 1's at t=0)
+    assert _digests(memory, [[1, 2]], [[1, 0]], [[1, 0]])[0, 0] == got[0, 1]
+
+
+def test_count_memory_counts_a_place_again_when_reached_remembering_something_new():
+    bonus = EpisodicCountBonus(SPACE, 1.0, num_envs=1, memory=MemoryContent(SPACE, "auto", 1))
+    rollout = SimpleNamespace(
+        obs=torch.nn.functional.one_hot(torch.tensor([[0], [2], [1], [2]]), 3).float(),
+        episode_starts=torch.tensor([[1], [0], [1], [0]], dtype=torch.bool),
+        dones=torch.tensor([[0], [1], [0], [1]], dtype=torch.bool),
+        final_obs=torch.nn.functional.one_hot(torch.tensor([[0], [2], [0], [2]]), 3).float(),
+        rewards=torch.zeros(4, 1),
+    )
+    next_obs = torch.nn.functional.one_hot(torch.tensor([0]), 3).float()
+    kept = np.array([[1], [0], [1], [0]], dtype=bool)  # the indicators 0 and 1 are kept
+    # Both episodes reach the place 2 twice (every visit counts, only first visits in an
+    # episode pay). Without the memory it is one code, reached 4 times; with it the second
+    # episode reaches 2 remembering 1 instead of 0: another code, each reached twice.
+    plain = EpisodicCountBonus(SPACE, 1.0, num_envs=1)
+    plain_rollout = SimpleNamespace(**{**vars(rollout), "rewards": torch.zeros(4, 1)})
+    plain.add_bonus(plain_rollout, next_obs)
+    np.testing.assert_allclose(plain_rollout.rewards[:, 0].numpy(), [0.5, 0, 0.5, 0])
+    bonus.add_bonus(rollout, next_obs, kept)
+    np.testing.assert_allclose(rollout.rewards[:, 0].numpy(), [2**-0.5, 0, 2**-0.5, 0])

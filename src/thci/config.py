@@ -19,6 +19,8 @@ Method = Literal["lstm", "gru", "mlp", "nm", "wmg", "sai", "hai", "oracle", "t-h
 CAUSAL_METHODS = ("t-hci", "hci")
 # Methods whose memory weighs each observation (ν of TAIE): the gate, attention, the labels.
 WEIGHING_METHODS = ("t-hci", "hci", "sai", "hai", "oracle")
+# Of those, the ones whose weights are attention rather than keep-or-remove decisions.
+ATTENTION_METHODS = ("sai", "hai")
 Algo = Literal["ppo", "a2c", "dmc"]
 
 # Fields that may differ between a run and its resumption: where it lives, the resume flag
@@ -105,6 +107,11 @@ class TrainConfig:
     count_beta: float = 0.1
     count_key: str | None = None
     """Count this info entry (e.g. agent_pos) instead of the observation."""
+    count_memory: bool = False
+    """Count (place, memory content) pairs: the set of observations the memory has kept so far
+    in the episode joins the count key, so reaching a place while remembering something new
+    pays (thci.rl.exploration). Methods whose memory keeps or removes whole observations: a
+    causal memory (t-hci, hci, oracle) or one that keeps everything (lstm, gru, mlp, nm, wmg)."""
 
     # Counterfactual inference (methods t-hci and hci)
     ci_every: int = 8192
@@ -258,6 +265,13 @@ class TrainConfig:
             raise ThciError(
                 f"--method sai splits --encoder-size over 4 attention heads: it must be a "
                 f"multiple of 4, got {self.encoder_size}"
+            )
+        if self.count_memory and self.exploration == "none":
+            raise ThciError("--count-memory adds to the count key: it needs --exploration")
+        if self.count_memory and self.method in ATTENTION_METHODS:
+            raise ThciError(
+                f"--count-memory needs a memory that keeps or removes whole observations; "
+                f"--method {self.method} weighs them by attention (use it without --count-memory)"
             )
         if self.ci_min_support < 1:
             raise ThciError(f"--ci-min-support must be >= 1, got {self.ci_min_support}")

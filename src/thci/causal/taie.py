@@ -14,11 +14,12 @@ TAIE = E_τ [ Σ_t |ν(o_t) − ν*(o_t)| / T_τ ] over trajectories τ of the t
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from thci.envs.factory import make_vector_env
 from thci.rl.agent import ActorCritic
-from thci.rl.rollout import RolloutCollector
+from thci.rl.rollout import Rollout, RolloutCollector
 from thci.rl.sequences import cut_into_segments
 
 
@@ -80,6 +81,13 @@ def observation_weights(
         return result.squeeze(-1) if result.shape[-1] == 1 else result
     keep = None if agent.gate is None else agent.gate.keep(obs[..., : agent.observation_size])
     return torch.ones(steps, envs) if keep is None else keep.float()
+
+
+@torch.no_grad()
+def kept_observations(agent: ActorCritic, rollout: Rollout) -> np.ndarray:
+    """(T, N) bool: the agent's memory keeps rollout.obs[t] (ν ≥ 1/2; a memory that keeps or
+    removes whole observations, not an attention memory)."""
+    return (observation_weights(agent, rollout.inputs, rollout.episode_starts) >= 0.5).numpy()
 
 
 @torch.no_grad()

@@ -24,6 +24,16 @@ never sees. Three bonuses are built on these codes:
 
 All are options for every method (``--exploration count|episodic|episodic-count``), so
 baselines can be compared under the same exploration.
+
+``--count-memory`` adds to the code what the agent's memory holds when it moves there: the set
+of observations its memory has kept so far in the episode (:class:`MemoryContent`). The counts
+are then of (place, memory) pairs, and a place the agent has often reached, but rarely *while
+remembering what it remembers now*, pays again. On Maze L3 this is what finds the last goals:
+a policy that has learned the goals of two variants never reaches the goal of a third variant
+with that variant's indicator in memory, and no count over places alone pays for trying. With
+a causal memory the sets are few (T-HCI's gate keeps the indicators); a memory that keeps
+everything holds the set of every observation seen so far, which in a large observation
+space is new in almost every episode.
 """
 
 from __future__ import annotations
@@ -34,8 +44,78 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from thci.causal.discretize import Discretizer, discretizer_from_state, make_discretizer
+from thci.causal.discretize import (
+    Discretizer,
+    ExactDiscretizer,
+    discretizer_from_state,
+    make_discretizer,
+)
 from thci.rl.rollout import Rollout
+
+
+class MemoryContent:
+    """The set of observations each environment's memory has kept so far in its episode.
+
+    Sets are identified by a digest: the XOR of a random 63-bit key per observation code in the
+    set, so no table of sets is stored and two different sets share a digest with probability
+    about 2^-63.
+
+    Args:
+        observation_space: the flat single-env observation space.
+        kind: discretizer kind for the observations ("auto", "exact", "simhash").
+        num_envs: N.
+        seed: seed of the per-code keys.
+    """
+
+    def __init__(self, observation_space: gym.Space, kind: str, num_envs: int, seed: int = 0):
+        self.observation_space, self.kind, self.seed = observation_space, kind, seed
+        self.discretizer: Discretizer | None = None
+        self.code_keys = np.zeros(0, dtype=np.int64)  # (codes,) the key of each code
+        self.held = np.zeros((num_envs, 0), dtype=bool)  # (N, codes) in memory this episode
+        self.digest = np.zeros(num_envs, dtype=np.int64)  # (N,) digest of each held set
+
+    def digests(self, obs: torch.Tensor, kept: np.ndarray, starts: np.ndarray) -> np.ndarray:
+        """(T, N) int64 digest of the memory's set after each step's observation.
+
+        Args:
+            obs: (T, N, D) the observations of a rollout.
+            kept: (T, N) bool, the memory keeps obs[t] (T-HCI: the gate's decision).
+            starts: (T, N) bool, obs[t] is the first observation of an episode.
+        """
+        flat = obs.reshape(-1, obs.shape[-1]).numpy()
+        if self.discretizer is None:
+            self.discretizer = make_discretizer(self.kind, self.observation_space, sample=flat)
+        codes = self.discretizer.encode(flat).reshape(kept.shape)
+        size = int(codes.max()) + 1
+        if size > len(self.code_keys):  # a fresh generator per growth step: resumable
+            rng = np.random.default_rng([self.seed, len(self.code_keys)])
+            new_keys = rng.integers(1, 2**63 - 1, size - len(self.code_keys), dtype=np.int64)
+            self.code_keys = np.concatenate((self.code_keys, new_keys))
+        self.held = _grow(self.held, size, axis=1)
+        envs = np.arange(codes.shape[1])
+        digests = np.empty(codes.shape, dtype=np.int64)
+        for t in range(len(codes)):  # sequential: a set depends on the steps before
+            self.held[starts[t]] = False
+            self.digest[starts[t]] = 0
+            new = kept[t] & ~self.held[envs, codes[t]]
+            self.digest ^= np.where(new, self.code_keys[codes[t]], 0)
+            self.held[envs, codes[t]] |= kept[t]
+            digests[t] = self.digest
+        return digests
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "discretizer": None if self.discretizer is None else self.discretizer.state_dict(),
+            "code_keys": torch.as_tensor(self.code_keys),
+            "held": torch.as_tensor(self.held),
+            "digest": torch.as_tensor(self.digest),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state["discretizer"] is not None:
+            self.discretizer = discretizer_from_state(state["discretizer"])
+        for name in ("code_keys", "held", "digest"):
+            setattr(self, name, state[name].numpy().copy())
 
 
 class ExplorationBonus:
@@ -47,6 +127,8 @@ class ExplorationBonus:
         kind: discretizer kind ("auto", "exact", "simhash").
         count_key: code this info entry of the reached observation instead (None: the
             observation itself).
+        memory: pair each code with the memory's content when the step was taken
+            (``--count-memory``); None: codes alone.
     """
 
     def __init__(
@@ -55,17 +137,22 @@ class ExplorationBonus:
         beta: float,
         kind: str = "auto",
         count_key: str | None = None,
+        memory: MemoryContent | None = None,
     ) -> None:
         self.observation_space, self.beta, self.kind = observation_space, beta, kind
-        self.count_key = count_key
+        self.count_key, self.memory = count_key, memory
         self.discretizer: Discretizer | None = None
+        self.pairs = ExactDiscretizer()  # (place code, memory digest) → one code
 
-    def reached_codes(self, rollout: Rollout, next_obs: torch.Tensor) -> np.ndarray:
+    def reached_codes(
+        self, rollout: Rollout, next_obs: torch.Tensor, kept: np.ndarray | None = None
+    ) -> np.ndarray:
         """(T, N) codes of what each step reached (the final observation where one ended).
 
         Args:
             rollout: a collected rollout (T, N).
             next_obs: (N, D) the observations after the rollout's last step.
+            kept: (T, N) bool, the memory keeps rollout.obs[t]; needed with ``memory``.
         """
         if self.count_key is None:
             reached = torch.cat((rollout.obs[1:], next_obs.unsqueeze(0)))  # (T, N, D)
@@ -78,11 +165,23 @@ class ExplorationBonus:
             space = gym.spaces.Box(-np.inf, np.inf, flat.shape[1:])
         if self.discretizer is None:
             self.discretizer = make_discretizer(self.kind, space, sample=flat)
-        return self.discretizer.encode(flat).reshape(rollout.rewards.shape)
+        codes = self.discretizer.encode(flat)
+        if self.memory is not None:
+            if kept is None:
+                raise ValueError("a bonus that counts memory content needs the kept flags")
+            held = self.memory.digests(rollout.obs, kept, rollout.episode_starts.numpy())
+            codes = self.pairs.encode(np.stack((codes, held.ravel()), axis=1))
+        return codes.reshape(rollout.rewards.shape)
 
-    def add_bonus(self, rollout: Rollout, next_obs: torch.Tensor) -> float:
-        """Add the bonus to ``rollout.rewards`` in place; returns its mean per step."""
-        bonus = self.bonus(self.reached_codes(rollout, next_obs), rollout.dones.numpy())
+    def add_bonus(
+        self, rollout: Rollout, next_obs: torch.Tensor, kept: np.ndarray | None = None
+    ) -> float:
+        """Add the bonus to ``rollout.rewards`` in place; returns its mean per step.
+
+        ``kept`` (T, N) bool: which observations the memory keeps (with ``memory`` only).
+        """
+        codes = self.reached_codes(rollout, next_obs, kept)
+        bonus = self.bonus(codes, rollout.dones.numpy())
         rollout.rewards += torch.as_tensor(bonus, dtype=torch.float32)
         return float(bonus.mean())
 
@@ -91,11 +190,19 @@ class ExplorationBonus:
         raise NotImplementedError
 
     def state_dict(self) -> dict[str, Any]:
-        return {"discretizer": None if self.discretizer is None else self.discretizer.state_dict()}
+        return {
+            "discretizer": None if self.discretizer is None else self.discretizer.state_dict(),
+            "pairs": self.pairs.state_dict(),
+            "memory": None if self.memory is None else self.memory.state_dict(),
+        }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["discretizer"] is not None:
             self.discretizer = discretizer_from_state(state["discretizer"])
+        if "pairs" in state:  # checkpoints before --count-memory have neither entry
+            self.pairs = discretizer_from_state(state["pairs"])
+        if self.memory is not None:
+            self.memory.load_state_dict(state["memory"])
 
 
 class CountBonus(ExplorationBonus):
@@ -183,11 +290,15 @@ def make_exploration_bonus(
     discretizer: str,
     count_key: str | None,
     num_envs: int,
+    count_memory: bool = False,
 ) -> ExplorationBonus | None:
-    """The bonus named by ``--exploration`` (None for "none")."""
+    """The bonus named by ``--exploration`` (None for "none"); ``count_memory`` pairs its codes
+    with the memory's content."""
+    memory = MemoryContent(observation_space, discretizer, num_envs) if count_memory else None
+    args = (observation_space, beta, discretizer, count_key, memory)
     if kind == "count":
-        return CountBonus(observation_space, beta, discretizer, count_key)
+        return CountBonus(*args)
     episodic = {"episodic": EpisodicNoveltyBonus, "episodic-count": EpisodicCountBonus}
     if kind in episodic:
-        return episodic[kind](observation_space, beta, discretizer, count_key, num_envs=num_envs)
+        return episodic[kind](*args, num_envs=num_envs)
     return None

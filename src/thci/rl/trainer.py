@@ -22,7 +22,7 @@ from tqdm import tqdm
 import thci
 from thci.causal.gate import Gate
 from thci.causal.loop import CausalInferenceLoop
-from thci.causal.taie import measure_taie
+from thci.causal.taie import kept_observations, measure_taie
 from thci.config import CAUSAL_METHODS, WEIGHING_METHODS, TrainConfig
 from thci.envs.factory import make_vector_env
 from thci.errors import ThciError
@@ -170,6 +170,7 @@ def _train(
         config.discretizer,
         config.count_key,
         config.num_envs,
+        config.count_memory,
     )
     ci = None
     if agent.gate is not None:
@@ -256,9 +257,9 @@ def _train(
             tracker.add(episodes, global_step, config.num_envs)
             global_step += steps_per_update
             if bonus is not None:
-                writer.add_scalar(
-                    "charts/intrinsic_reward", bonus.add_bonus(rollout, collector.obs), global_step
-                )
+                kept = kept_observations(agent, rollout) if config.count_memory else None
+                mean_bonus = bonus.add_bonus(rollout, collector.obs, kept)
+                writer.add_scalar("charts/intrinsic_reward", mean_bonus, global_step)
             losses = algorithm.update(agent, optimizer, rollout)
             update += 1
             if ci is not None:  # the CI loop runs on the pool between RL updates (Fig. 3)
