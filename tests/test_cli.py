@@ -57,7 +57,7 @@ def assert_one_line_error(capsys, code: int, *fragments: str) -> None:
         (["--num-minibatches", "32"], ["--num-minibatches"]),
         (["--resume"], ["--run-dir"]),
         (["--count-memory"], ["--count-memory", "--exploration"]),
-        (["--count-memory", "--exploration", "count", "--method", "sai"], ["attention"]),
+        (["--count-memory", "--exploration", "count", "--method", "lstm"], ["causal memory"]),
     ],
 )
 def test_bad_train_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, fragments):
@@ -278,7 +278,8 @@ def test_count_key_missing_from_info_is_refused_before_anything_is_written(tmp_p
 
 
 @pytest.mark.parametrize(
-    "exploration", [["count"], ["episodic-count"], ["episodic-count", "--count-memory"]]
+    "exploration",
+    [["count"], ["episodic-count"], ["episodic-count", "--count-memory", "--method", "oracle"]],
 )
 def test_count_exploration_adds_bonus_and_resumes_to_the_same_result(tmp_path, exploration):
     args = [

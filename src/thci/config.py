@@ -19,8 +19,8 @@ Method = Literal["lstm", "gru", "mlp", "nm", "wmg", "sai", "hai", "oracle", "t-h
 CAUSAL_METHODS = ("t-hci", "hci")
 # Methods whose memory weighs each observation (ν of TAIE): the gate, attention, the labels.
 WEIGHING_METHODS = ("t-hci", "hci", "sai", "hai", "oracle")
-# Of those, the ones whose weights are attention rather than keep-or-remove decisions.
-ATTENTION_METHODS = ("sai", "hai")
+# Methods with a causal memory: a gate (or the labels) decides which observations it keeps.
+GATED_METHODS = (*CAUSAL_METHODS, "oracle")
 Algo = Literal["ppo", "a2c", "dmc"]
 
 # Fields that may differ between a run and its resumption: where it lives, the resume flag
@@ -108,10 +108,10 @@ class TrainConfig:
     count_key: str | None = None
     """Count this info entry (e.g. agent_pos) instead of the observation."""
     count_memory: bool = False
-    """Count (place, memory content) pairs: the set of observations the memory has kept so far
-    in the episode joins the count key, so reaching a place while remembering something new
-    pays (thci.rl.exploration). Methods whose memory keeps or removes whole observations: a
-    causal memory (t-hci, hci, oracle) or one that keeps everything (lstm, gru, mlp, nm, wmg)."""
+    """Count (place, memory content) pairs: the set of observations the causal memory has kept
+    so far in the episode joins the count key, so reaching a place while remembering something
+    new pays (thci.rl.exploration). Methods t-hci, hci and oracle; before the first gate,
+    places alone are counted."""
 
     # Counterfactual inference (methods t-hci and hci)
     ci_every: int = 8192
@@ -268,10 +268,10 @@ class TrainConfig:
             )
         if self.count_memory and self.exploration == "none":
             raise ThciError("--count-memory adds to the count key: it needs --exploration")
-        if self.count_memory and self.method in ATTENTION_METHODS:
+        if self.count_memory and self.method not in GATED_METHODS:
             raise ThciError(
-                f"--count-memory needs a memory that keeps or removes whole observations; "
-                f"--method {self.method} weighs them by attention (use it without --count-memory)"
+                f"--count-memory needs a causal memory (--method {', '.join(GATED_METHODS)}), "
+                f"got --method {self.method}: one that keeps everything makes every pair new"
             )
         if self.ci_min_support < 1:
             raise ThciError(f"--ci-min-support must be >= 1, got {self.ci_min_support}")

@@ -85,8 +85,11 @@ def observation_weights(
 
 @torch.no_grad()
 def kept_observations(agent: ActorCritic, rollout: Rollout) -> np.ndarray:
-    """(T, N) bool: the agent's memory keeps rollout.obs[t] (ν ≥ 1/2; a memory that keeps or
-    removes whole observations, not an attention memory)."""
+    """(T, N) bool: the observations of the rollout that the causal memory keeps (the gate's
+    decisions, or the oracle's labels); all False while the gate is inactive, so that before
+    the first CI round nothing counts as remembered."""
+    if agent.gate is not None and not bool(agent.gate.active):
+        return np.zeros(rollout.rewards.shape, dtype=bool)
     return (observation_weights(agent, rollout.inputs, rollout.episode_starts) >= 0.5).numpy()
 
 
