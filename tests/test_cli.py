@@ -57,7 +57,6 @@ def assert_one_line_error(capsys, code: int, *fragments: str) -> None:
         (["--num-minibatches", "32"], ["--num-minibatches"]),
         (["--resume"], ["--run-dir"]),
         (["--count-memory"], ["--count-memory", "--exploration"]),
-        (["--count-memory", "--exploration", "count", "--method", "lstm"], ["causal memory"]),
     ],
 )
 def test_bad_train_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, fragments):
@@ -296,6 +295,13 @@ def test_count_exploration_adds_bonus_and_resumes_to_the_same_result(tmp_path, e
     plain = train(tmp_path, "plain", "--total-steps", "4096", "--seed", "2")
     assert without_timing(reference) != without_timing(plain)  # the bonus changes learning
     assert_stop_and_resume_matches(tmp_path, reference, args)
+
+
+def test_count_memory_leaves_a_memory_that_keeps_everything_to_count_places(tmp_path):
+    args = ["--exploration", "episodic-count", "--count-key", "agent_pos", "--seed", "3"]
+    plain = train(tmp_path, "plain", "--total-steps", "2048", *args)
+    with_memory = train(tmp_path, "memory", "--total-steps", "2048", *args, "--count-memory")
+    assert without_timing(plain) == without_timing(with_memory)
 
 
 def test_atomic_writes_get_the_mode_of_a_plain_open(tmp_path):

@@ -110,8 +110,9 @@ class TrainConfig:
     count_memory: bool = False
     """Count (place, memory content) pairs: the set of observations the causal memory has kept
     so far in the episode joins the count key, so reaching a place while remembering something
-    new pays (thci.rl.exploration). Methods t-hci, hci and oracle; before the first gate,
-    places alone are counted."""
+    new pays (thci.rl.exploration). For t-hci, hci and oracle; before the first gate, and with
+    other methods (no causal memory; like the ci_* settings, it does not apply), places alone
+    are counted."""
 
     # Counterfactual inference (methods t-hci and hci)
     ci_every: int = 8192
@@ -268,11 +269,6 @@ class TrainConfig:
             )
         if self.count_memory and self.exploration == "none":
             raise ThciError("--count-memory adds to the count key: it needs --exploration")
-        if self.count_memory and self.method not in GATED_METHODS:
-            raise ThciError(
-                f"--count-memory needs a causal memory (--method {', '.join(GATED_METHODS)}), "
-                f"got --method {self.method}: one that keeps everything makes every pair new"
-            )
         if self.ci_min_support < 1:
             raise ThciError(f"--ci-min-support must be >= 1, got {self.ci_min_support}")
         if self.ci_z < 2:

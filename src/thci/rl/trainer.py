@@ -23,7 +23,7 @@ import thci
 from thci.causal.gate import Gate
 from thci.causal.loop import CausalInferenceLoop
 from thci.causal.taie import kept_observations, measure_taie
-from thci.config import CAUSAL_METHODS, WEIGHING_METHODS, TrainConfig
+from thci.config import CAUSAL_METHODS, GATED_METHODS, WEIGHING_METHODS, TrainConfig
 from thci.envs.factory import make_vector_env
 from thci.errors import ThciError
 from thci.experiments.run_dir import (
@@ -163,6 +163,7 @@ def _train(
     )
     tracker = SolveTracker(config.solve_window, config.solve_threshold)
     algorithm = make_algorithm(config)
+    count_memory = config.count_memory and config.method in GATED_METHODS
     bonus = make_exploration_bonus(
         config.exploration,
         envs.single_observation_space,
@@ -170,7 +171,7 @@ def _train(
         config.discretizer,
         config.count_key,
         config.num_envs,
-        config.count_memory,
+        count_memory,
     )
     ci = None
     if agent.gate is not None:
@@ -257,7 +258,7 @@ def _train(
             tracker.add(episodes, global_step, config.num_envs)
             global_step += steps_per_update
             if bonus is not None:
-                kept = kept_observations(agent, rollout) if config.count_memory else None
+                kept = kept_observations(agent, rollout) if count_memory else None
                 mean_bonus = bonus.add_bonus(rollout, collector.obs, kept)
                 writer.add_scalar("charts/intrinsic_reward", mean_bonus, global_step)
             losses = algorithm.update(agent, optimizer, rollout)
