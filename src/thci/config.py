@@ -110,9 +110,8 @@ class TrainConfig:
     count_memory: bool = False
     """Count (place, memory content) pairs: the set of observations the causal memory has kept
     so far in the episode joins the count key, so reaching a place while remembering something
-    new pays (thci.rl.exploration). For t-hci, hci and oracle; before the first gate, and with
-    other methods (no causal memory; like the ci_* settings, it does not apply), places alone
-    are counted."""
+    new pays (thci.rl.exploration). Applies to t-hci, hci and oracle (other methods ignore it,
+    as they ignore the ci_* settings); before the first gate, places alone are counted."""
 
     # Counterfactual inference (methods t-hci and hci)
     ci_every: int = 8192
