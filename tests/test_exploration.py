@@ -60,7 +60,7 @@ def test_episodic_count_bonus_pays_first_visits_by_run_wide_rarity():
     got = bonus.bonus(np.array([[5, 5], [1, 7]]), np.array([[1, 0], [0, 0]], dtype=bool))
     np.testing.assert_allclose(got, [[1 / np.sqrt(5), 0.0], [1 / np.sqrt(3), 1.0]])
     state = bonus.state_dict()
-    assert set(state) == {"discretizer", "pairs", "memory", "counts", "visited"}
+    assert set(state) == {"discretizer", "memory", "counts", "visited"}
 
 
 def _digests(memory, codes, kept, starts):

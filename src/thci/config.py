@@ -121,9 +121,9 @@ class TrainConfig:
     takes effect; the RL loop waits only if the round has not finished by then, and the next
     round starts then. A round overlaps with the next ci_lag steps of training (Fig. 3). With
     8192 the RL loop waited for almost every round (Maze L3-L4, 5 seeds each: 10-28 s per run,
-    6-30% of its wall-clock); with 32768 it waited 2.6-5.9 s per run (2-13%), mostly in the
-    first round, which also starts the worker process, and L1-L2 are solved before the first
-    gate."""
+    6-30% of its wall-clock); with 32768 it waited 2.6-5.9 s per run (2-13%; with the presets'
+    later exploration settings 3.0-12.3 s, 1.7-16%), mostly in the first round, which also
+    starts the worker process, and L1-L2 are solved before the first gate."""
     ci_async: bool = True
     """Run CI rounds in a worker process beside the RL loop (Fig. 3); results are identical
     either way, as the gate takes effect at the same step."""

@@ -74,6 +74,17 @@ class MemoryContent:
         self.code_keys = np.zeros(0, dtype=np.int64)  # (codes,) the key of each code
         self.held = np.zeros((num_envs, 0), dtype=bool)  # (N, codes) in memory this episode
         self.digest = np.zeros(num_envs, dtype=np.int64)  # (N,) digest of each held set
+        self.pairs = ExactDiscretizer()  # (place code, digest) → one code
+
+    def pair(
+        self, places: np.ndarray, obs: torch.Tensor, kept: np.ndarray, starts: np.ndarray
+    ) -> np.ndarray:
+        """(T, N) one code per (place, memory content) pair: `places` (T, N) codes of where each
+        step went, paired with the memory's set after the step's observation (`digests`)."""
+        held = self.digests(obs, kept, starts)
+        return self.pairs.encode(np.stack((places.ravel(), held.ravel()), axis=1)).reshape(
+            places.shape
+        )
 
     def digests(self, obs: torch.Tensor, kept: np.ndarray, starts: np.ndarray) -> np.ndarray:
         """(T, N) int64 digest of the memory's set after each step's observation.
@@ -110,11 +121,13 @@ class MemoryContent:
             "code_keys": torch.as_tensor(self.code_keys),
             "held": torch.as_tensor(self.held),
             "digest": torch.as_tensor(self.digest),
+            "pairs": self.pairs.state_dict(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["discretizer"] is not None:
             self.discretizer = discretizer_from_state(state["discretizer"])
+        self.pairs = discretizer_from_state(state["pairs"])
         for name in ("code_keys", "held", "digest"):
             setattr(self, name, state[name].numpy().copy())
 
@@ -143,7 +156,6 @@ class ExplorationBonus:
         self.observation_space, self.beta, self.kind = observation_space, beta, kind
         self.count_key, self.memory = count_key, memory
         self.discretizer: Discretizer | None = None
-        self.pairs = ExactDiscretizer()  # (place code, memory digest) → one code
 
     def reached_codes(
         self, rollout: Rollout, next_obs: torch.Tensor, kept: np.ndarray | None = None
@@ -166,13 +178,12 @@ class ExplorationBonus:
             space = gym.spaces.Box(-np.inf, np.inf, flat.shape[1:])
         if self.discretizer is None:
             self.discretizer = make_discretizer(self.kind, space, sample=flat)
-        codes = self.discretizer.encode(flat)
-        if self.memory is not None:
-            if kept is None:
-                raise ValueError("a bonus that counts memory content needs the kept flags")
-            held = self.memory.digests(rollout.obs, kept, rollout.episode_starts.numpy())
-            codes = self.pairs.encode(np.stack((codes, held.ravel()), axis=1))
-        return codes.reshape(rollout.rewards.shape)
+        codes = self.discretizer.encode(flat).reshape(rollout.rewards.shape)
+        if self.memory is None:
+            return codes
+        if kept is None:
+            raise ValueError("a bonus that counts memory content needs the kept flags")
+        return self.memory.pair(codes, rollout.obs, kept, rollout.episode_starts.numpy())
 
     def add_bonus(
         self, rollout: Rollout, next_obs: torch.Tensor, kept: np.ndarray | None = None
@@ -193,15 +204,12 @@ class ExplorationBonus:
     def state_dict(self) -> dict[str, Any]:
         return {
             "discretizer": None if self.discretizer is None else self.discretizer.state_dict(),
-            "pairs": self.pairs.state_dict(),
             "memory": None if self.memory is None else self.memory.state_dict(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["discretizer"] is not None:
             self.discretizer = discretizer_from_state(state["discretizer"])
-        if "pairs" in state:  # checkpoints before --count-memory have neither entry
-            self.pairs = discretizer_from_state(state["pairs"])
         if self.memory is not None:
             self.memory.load_state_dict(state["memory"])
 
