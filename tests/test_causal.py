@@ -16,7 +16,8 @@ from thci.causal.predictor import (
 from thci.causal.replay import PoolEpisode, ReplayPool, pad_episodes
 from thci.causal.search import fine_grained_ci, hci, t_hci
 from thci.causal.synthetic import generate_planted_episodes
-from thci.causal.taie import taie_of_rollout
+from thci.causal.taie import measure_taie, taie_of_rollout
+from thci.envs.paper_maze import load_maze_level
 from thci.experiments.demo import confounding_demo, door_deciders_kept
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
@@ -164,6 +165,27 @@ def test_taie_is_zero_for_a_perfect_gate_and_one_for_an_inverted_gate():
     assert torch.allclose(inverted, torch.ones_like(inverted))
     half = taie_of_rollout(torch.full((40, 6), 0.5), labels, starts, dones)
     assert torch.allclose(half, torch.full_like(half, 0.5))
+
+
+def test_taie_of_another_gate_weighs_by_it_on_the_agents_own_trajectories():
+    # summary.json's final_ci: the TAIE of a CI round's gate that the policy never used.
+    torch.manual_seed(0)
+    maze = load_maze_level(1)
+    codes = torch.eye(len(maze.is_causal))
+    labelled_causal = torch.tensor(maze.is_causal)
+    perfect, inverted = Gate(len(codes)), Gate(len(codes))
+    assert perfect.fit(codes, ~labelled_causal).accuracy == 1.0
+    assert inverted.fit(codes, labelled_causal).accuracy == 1.0
+    agent = ActorCritic(len(codes), 4, make_memory("lstm", 8, 8), 8, gate=Gate(len(codes)))
+
+    def taie(gate):
+        return measure_taie(agent, "thci/PaperMaze-L1-v0", episodes=32, seed=7, gate=gate)
+
+    keeps_everything = taie(None)  # the agent's own gate is inactive: ν = 1 everywhere
+    assert 0.3 < keeps_everything < 1.0
+    assert taie(perfect) == 0.0
+    assert taie(inverted) == 1.0
+    assert not agent.gate.active  # only ν changed, never the agent
 
 
 def test_confounding_demo_probabilities_and_causal_set():

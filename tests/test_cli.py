@@ -227,6 +227,10 @@ def test_t_hci_run_reports_ci_and_resumes_to_the_same_result(tmp_path):
     assert reference["interventions"] == sum(reference["interventions_per_round"]) > 0
     assert reference["observation_space_size"] >= 10
     assert 0.0 <= reference["taie"] <= 1.0
+    final = reference["final_ci"]  # a round on the final pool, reported, never applied
+    assert final["pool_episodes"] >= 50 and final["observation_space_size"] >= 10
+    assert final["interventions"] > 0 and 0.0 <= final["taie"] <= 1.0
+    assert reference["final_ci_seconds"] > 0
     rounds = (tmp_path / "reference" / "ci_rounds.csv").read_text().splitlines()
     assert len(rounds) == 1 + reference["ci_rounds"]
     log = json.loads((tmp_path / "reference" / "ci_interventions.json").read_text())

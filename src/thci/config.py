@@ -168,6 +168,11 @@ class TrainConfig:
     confidence interval."""
     ci_finetune_steps: int = 0
     """Optional Adam steps of per-intervention fine-tuning (0: off, see causal/predictor.py)."""
+    ci_final: bool = True
+    """After training, run one more CI round on the final pool and report what it infers
+    (summary's ``final_ci``: causal set, interventions, seconds, TAIE of its gate on the trained
+    policy's greedy trajectories). It is not applied to the policy. It tells what CI concludes
+    from all the data, also for a run that solved before its first gate took effect."""
     ci_threads: int = 1
     """torch threads during CI rounds. 2 is ~1.3x faster on two cores, but multi-threaded
     reductions make CI results differ between processes in the last bits, which can flip a

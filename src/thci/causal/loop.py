@@ -350,6 +350,27 @@ class CausalInferenceLoop:
             )
         return record
 
+    def final_inference(self) -> tuple[dict[str, Any], Gate, float] | None:
+        """One more CI round on the whole pool, run here and not applied to the agent: the
+        fields of summary.json's ``final_ci``, the round's gate and its seconds. None when the
+        pool is too small for a round (``ci_min_episodes``, ``ci_min_rewarded_episodes``)."""
+        cfg = self.config
+        if len(self.pool) < cfg.ci_min_episodes or (
+            self.pool.num_rewarded < cfg.ci_min_rewarded_episodes
+        ):
+            return None
+        job = self.make_job(self.pool.arrays())
+        outcome = run_ci_job(job)
+        gate = Gate(job.observation_size)
+        gate.load_state_dict(outcome.gate_state)
+        fields = {
+            "pool_episodes": len(job.pool.lengths),
+            "observation_space_size": len(outcome.result.observed),
+            "interventions": outcome.result.num_interventions,
+            "causal_observations": self.describe(outcome.result.causal),
+        }
+        return fields, gate, outcome.seconds
+
     def close(self) -> None:
         """Stop the worker process (a round in flight is dropped; checkpoints hold its inputs)."""
         if self._workers is not None:

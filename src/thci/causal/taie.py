@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from thci.causal.gate import Gate
 from thci.envs.factory import make_vector_env
 from thci.rl.agent import ActorCritic
 from thci.rl.rollout import Rollout, RolloutCollector
@@ -54,7 +55,10 @@ def taie_of_rollout(
 
 @torch.no_grad()
 def observation_weights(
-    agent: ActorCritic, obs: torch.Tensor, episode_starts: torch.Tensor | None = None
+    agent: ActorCritic,
+    obs: torch.Tensor,
+    episode_starts: torch.Tensor | None = None,
+    gate: Gate | None = None,
 ) -> torch.Tensor:
     """ν(o_t): the weight the agent's memory puts on each observation of a (T, N) rollout.
 
@@ -63,6 +67,8 @@ def observation_weights(
             the memory's side inputs; the same as ``Rollout.obs`` for memories without any).
         episode_starts: (T, N) bool, where episodes start; attention weights are computed per
             episode. Default: each column is one episode from t = 0.
+        gate: weigh by this gate instead of the agent's own (e.g. a CI round's gate that the
+            policy never used); only for gated memories.
 
     Returns:
         (T, N) float weights in [0, 1] (the module docstring says which, per method), or
@@ -79,7 +85,8 @@ def observation_weights(
         result[segments.index[segments.valid]] = weights[segments.valid]
         result = result.view(steps, envs, -1)
         return result.squeeze(-1) if result.shape[-1] == 1 else result
-    keep = None if agent.gate is None else agent.gate.keep(obs[..., : agent.observation_size])
+    gate = gate if gate is not None else agent.gate
+    keep = None if gate is None else gate.keep(obs[..., : agent.observation_size])
     return torch.ones(steps, envs) if keep is None else keep.float()
 
 
@@ -101,9 +108,11 @@ def measure_taie(
     seed: int = 20_000,
     vectorization: str = "auto",
     greedy: bool = True,
+    gate: Gate | None = None,
 ) -> float | list[float] | None:
     """TAIE of the agent over `episodes` greedy trajectories; one value per attention head for
-    SAI; None when the environment gives no labels."""
+    SAI; None when the environment gives no labels. With `gate`, the agent still acts with its
+    own memory, and ν is that gate's."""
     envs = make_vector_env(env_id, min(16, episodes), vectorization)
     try:
         # Only episodes that start and end inside one rollout count: 512 steps hold at least one
@@ -115,7 +124,7 @@ def measure_taie(
             rollout, _ = collector.collect()
             if rollout.causal is None:
                 return None
-            weights = observation_weights(agent, rollout.inputs, rollout.episode_starts)
+            weights = observation_weights(agent, rollout.inputs, rollout.episode_starts, gate)
             errors.append(
                 taie_of_rollout(weights, rollout.causal, rollout.episode_starts, rollout.dones)
             )

@@ -48,6 +48,7 @@ TIMING_FIELDS = (
     "ci_wall_clock_s",
     "ci_round_seconds",
     "ci_blocking_s",
+    "final_ci_seconds",
 )
 
 
@@ -313,6 +314,10 @@ def _train(
     save_checkpoint()
 
     wall_clock = wall_clock_before + time.perf_counter() - started
+    # Measurements of the trained run, not part of its wall-clock (like TAIE below).
+    final_ci, final_ci_seconds = (
+        _final_inference(agent, ci, config) if ci is not None and config.ci_final else (None, None)
+    )
     summary = {
         "env_id": config.env,
         "method": config.method,
@@ -328,6 +333,7 @@ def _train(
         "num_parameters": num_parameters,
         **(ci.summary() if ci is not None else {}),
         "taie": _taie(agent, config) if config.method in WEIGHING_METHODS else None,
+        **({} if ci is None else {"final_ci": final_ci, "final_ci_seconds": final_ci_seconds}),
         "wall_clock_s": round(wall_clock, 3),
         "steps_per_second": round(global_step / max(wall_clock, 1e-9), 1),
         "thci_version": thci.__version__,
@@ -336,14 +342,31 @@ def _train(
     return summary
 
 
-def _taie(agent: ActorCritic, config: TrainConfig) -> float | list[float] | None:
-    """TAIE of the trained agent; one value per attention head for SAI."""
+def _taie(
+    agent: ActorCritic, config: TrainConfig, gate: Gate | None = None
+) -> float | list[float] | None:
+    """TAIE of the trained agent (of `gate` instead of its own, if given); one value per
+    attention head for SAI."""
     taie = measure_taie(
-        agent, config.env, seed=config.seed + 20_000, vectorization=config.vectorization
+        agent, config.env, seed=config.seed + 20_000, vectorization=config.vectorization, gate=gate
     )
     if isinstance(taie, list):
         return [round(v, 4) for v in taie]
     return None if taie is None else round(taie, 4)
+
+
+def _final_inference(
+    agent: ActorCritic, ci: CausalInferenceLoop, config: TrainConfig
+) -> tuple[dict[str, Any] | None, float | None]:
+    """summary.json's ``final_ci`` (a CI round on the final pool, not applied to the policy,
+    with the TAIE of its gate on the trained policy's trajectories) and its seconds; None, None
+    when the pool is too small for a round."""
+    tqdm.write("final CI round on the whole pool (--no-ci-final skips it)")
+    final = ci.final_inference()
+    if final is None:
+        return None, None
+    fields, gate, seconds = final
+    return {**fields, "taie": _taie(agent, config, gate)}, round(seconds, 3)
 
 
 def write_ci_rounds(run: RunDirectory, ci: CausalInferenceLoop) -> None:
