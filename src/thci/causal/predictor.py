@@ -343,36 +343,42 @@ class BatchedPredictor(nn.Module):
         Returns:
             (K, n, out) outputs for the transitions (o_t, a_t) -> (o_{t+1}, r_t) where valid.
         """
-        num_models = self.embed.shape[0]
-        batch, steps = actions.shape
-        emb = self.embed[:, ids]  # (K, B, L+1, d), unmasked
+        steps = actions.shape[1]
         removed = masked[:, :, :steps].unsqueeze(-1)
-        hist = emb[:, :, :steps] * ~removed  # Eq. 3: intervened observations -> zero vectors
-        # Running max over the *kept* history only: a removed observation leaves no trace, not
-        # even its slot (a zero placeholder would reveal that a masked code was there).
-        seen = torch.cummax(hist.masked_fill(removed, float("-inf")), dim=2).values
+        # Eq. 3: intervened observations -> zero vectors. Running max over the *kept* history
+        # only: a removed observation leaves no trace, not even its slot (a zero placeholder
+        # would reveal that a masked code was there).
+        hist = self.embed[:, ids[:, :steps]].masked_fill(removed, float("-inf"))  # (K, B, L, d)
+        # (cummax runs ~1.4x faster along a contiguous last dimension)
+        seen = torch.cummax(hist.transpose(2, 3).contiguous(), dim=-1).values.transpose(2, 3)
         # h_{t-1} excludes o_t: shift by one step; an empty history is the zero vector
         seen = torch.cat((torch.full_like(seen[:, :, :1], float("-inf")), seen[:, :, :-1]), 2)
         seen = seen.masked_fill(torch.isinf(seen), 0.0)
-        current = emb[:, :, :steps]
-        action = nn.functional.one_hot(actions, self.num_actions).to(emb.dtype)
-        action = action.unsqueeze(0).expand(num_models, -1, -1, -1)
-        following = emb[:, :, 1 : steps + 1]  # o_{t+1}, never masked
+
+        # Only the n real transitions are gathered into the first layer's input (K, n, ·).
+        rows, cols = valid.nonzero(as_tuple=True)
+        num_models, n = self.embed.shape[0], len(rows)
+        action = nn.functional.one_hot(actions[rows, cols], self.num_actions).to(hist.dtype)
+        following = self.embed[:, ids[rows, cols + 1]]  # o_{t+1}, never masked
         extra = {
-            "dynamics": (action,),
-            "reward": (action, following),
+            "dynamics": (action.expand(num_models, -1, -1),),
+            "reward": (action.expand(num_models, -1, -1), following),
             "inverse": (following,),
         }[self.target]
         # The step embedding lets the predictor know *when* an outcome arrives (e.g. a reward at the
         # horizon); which observations matter stays a question about the history.
-        when = self.step_embed[:, :steps].unsqueeze(1).expand(-1, batch, -1, -1)
+        when = self.step_embed[:, cols]
         # The predictor is told *which* codes the intervention masks (not whether they occurred
         # in this episode): one network then stands for the per-intervention minimizers of Eq. 9,
         # and "c is absent" (c was not observed) stays distinct from "c is masked".
-        intervened = torch.bmm(masked_codes.to(emb.dtype), self.mask_embed)  # (K, 1|B, d)
-        intervened = intervened.unsqueeze(2).expand(-1, batch, steps, -1)
-        x = torch.cat((seen, current, *extra, when, intervened), dim=-1)[:, valid]
-        hidden = torch.relu(torch.baddbmm(self.b1, x, self.w1))
+        intervened = torch.bmm(masked_codes.to(hist.dtype), self.mask_embed)  # (K, 1|B, d)
+        intervened = (
+            intervened[:, rows] if intervened.shape[1] > 1 else intervened.expand(-1, n, -1)
+        )
+        current = self.embed[:, ids[rows, cols]]  # o_t, never masked
+        x = torch.cat((seen[:, rows, cols], current, *extra, when, intervened), dim=-1)
+        pre = torch.baddbmm(self.b1, x, self.w1)
+        hidden = torch.relu(pre)
         return torch.baddbmm(self.b2, hidden, self.w2)
 
     def errors(
