@@ -60,11 +60,12 @@ def planted_reward(on: np.ndarray) -> np.ndarray:
     """Reward of the last action given which causes were on: how many were.
 
     r = sum_i on_i: every cause changes the reward by 1, and no proper subset of causes
-    determines it. Each cause's effect is the same and large: with the cause (and its
-    confounder) masked, the best prediction misses by 1/2 on average, a held-out error of
-    2 * 1/4 = 0.5 per rewarded transition against the default threshold xi = 0.1. (An earlier
-    binary weighting, r = sum_i 2**i on_i / (2**k - 1), gave the lightest of two causes an
-    effect of 2 * (1/3)**2 / 4 = 0.056, below xi: a cause the threshold defines away.)
+    determines it. Each cause weighs the same: the effect predictor scales rewards by their
+    largest value (k), so masking one cause (and its confounder) costs a held-out error of
+    2 * (1/k)**2 / 4 = 1/(2 k**2) per rewarded transition, 0.125 for two causes against the
+    default threshold xi = 0.1. (The earlier binary weighting, r = sum_i 2**i on_i / (2**k - 1),
+    gave the lighter of two causes 2 * (1/3)**2 / 4 = 0.056, below xi: a cause the threshold
+    defines away.)
 
     Args:
         on: (..., k) bool.
