@@ -9,8 +9,10 @@ import torch
 from thci.causal.gate import Gate
 from thci.causal.predictor import (
     BatchedPredictor,
+    CodeData,
     EffectEstimate,
     EffectEstimator,
+    Intervention,
     PredictorConfig,
 )
 from thci.causal.replay import PoolEpisode, ReplayPool, pad_episodes
@@ -336,17 +338,33 @@ def test_support_counts_held_out_episodes_with_the_code_in_a_history():
 def test_warm_start_carries_each_code_to_its_row_and_class():
     config = PredictorConfig(ensemble=2)
     old = BatchedPredictor(2, num_codes=3, num_actions=2, num_classes=3, config=config)
-    with torch.no_grad():
-        old.embed.copy_(torch.arange(3.0).view(1, 3, 1).expand(2, 3, config.embed_dim) + 1)
+    with torch.no_grad():  # rows 0-2: codes 10, 20, 30; row 3: the rare codes' shared row
+        old.embed.copy_(torch.arange(4.0).view(1, 4, 1).expand(2, 4, config.embed_dim) + 1)
         old.w2[..., :3] = torch.arange(3.0) + 1
     state = old.state(np.array([10, 20, 30]))
     new = BatchedPredictor(2, num_codes=3, num_actions=2, num_classes=3, config=config)
     new.warm_start(state, np.array([20, 30, 40]), classes_are_codes=True)
-    # codes 20 and 30 were rows/classes 1 and 2, now 0 and 1; the new code 40 starts at zero
-    assert torch.equal(new.embed[:, :, 0], torch.tensor([[2.0, 3.0, 0.0]] * 2))
+    # codes 20 and 30 were rows/classes 1 and 2, now 0 and 1; the new code 40 starts at zero;
+    # the shared row stays the shared row
+    assert torch.equal(new.embed[:, :, 0], torch.tensor([[2.0, 3.0, 0.0, 4.0]] * 2))
     assert torch.equal(new.w2[0, :, :2], torch.tensor([2.0, 3.0]).expand(config.hidden_size, 2))
     assert torch.equal(new.w1, old.w1) and torch.equal(new.w2[..., -1], old.w2[..., -1])
     assert not torch.equal(new.w2[..., 2], old.w2[..., 2])  # class of code 40: fresh
+
+
+def test_codes_seen_in_few_episodes_share_one_embedding_and_are_still_masked_alone():
+    codes = np.array([[0, 1, 2, 3], [0, 1, 4, 3], [0, 1, 2, 3], [0, 5, 2, 3]])
+    pool = pad_episodes(
+        [PoolEpisode(c, np.zeros(3, np.int64), np.zeros(3, np.float32)) for c in codes]
+    )
+    data = CodeData(pool, PredictorConfig(min_code_episodes=2), num_actions=2)
+    # codes 4 and 5 occur in one episode each: the shared row |Ô| = 6; the others keep theirs
+    assert data.embed_ids.tolist() == [[0, 1, 2, 3], [0, 1, 6, 3], [0, 1, 2, 3], [0, 6, 2, 3]]
+    estimator = EffectEstimator(pool, 2, PredictorConfig(min_code_episodes=2, base_steps=1))
+    masked, _, _ = estimator._mask_builder([Intervention(np.array([4]))], np.array([], int))(
+        torch.arange(4)
+    )
+    assert masked[0].nonzero().tolist() == [[1, 2]]  # code 4 alone, not code 5
 
 
 @pytest.mark.parametrize("search", [hci, lambda e, keep: t_hci(e, z=2, keep=keep)])
