@@ -400,8 +400,7 @@ class BatchedPredictor(nn.Module):
         )
         current = self.embed[:, ids[rows, cols]]  # o_t, never masked
         x = torch.cat((seen[:, rows, cols], current, *extra, when, intervened), dim=-1)
-        pre = torch.baddbmm(self.b1, x, self.w1)
-        hidden = torch.relu(pre)
+        hidden = torch.relu(torch.baddbmm(self.b1, x, self.w1))
         return torch.baddbmm(self.b2, hidden, self.w2)
 
     def errors(
