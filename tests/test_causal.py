@@ -296,6 +296,30 @@ def test_of_two_interchangeable_causes_the_one_the_gate_keeps_stays(search, pref
     assert sorted(result.eliminated.tolist()) == sorted({0, 1, 2, 3} - {prefer})
 
 
+class _LateComplementEstimator(_TableEstimator):
+    """64 codes without effect, except that masking both 40 and 50 (with O^w) has one."""
+
+    def __init__(self) -> None:
+        super().__init__({c: (-0.01, 0.01) for c in range(64)})
+
+    def ate(self, interventions, eliminated):
+        both = [{40, 50} <= {*i.codes.tolist(), *eliminated.tolist()} for i in interventions]
+        lower, upper = np.where(both, 0.3, -0.01), np.where(both, 0.5, 0.01)
+        return EffectEstimate((lower + upper) / 2, lower, upper)
+
+
+def test_a_batch_of_removable_sets_with_a_complementary_pair_costs_logarithmic_checks():
+    # HCI tests all 64 in one batch: each alone has no effect, all together have one. The
+    # longest removable run (codes 0-49 but 40's partner 50) is found by binary search, then
+    # 50-63 are tested again: one of 40 and 50 stays.
+    result = hci(_LateComplementEstimator(), batch_size=64)
+    assert result.causal.tolist() == [50]
+    assert len(result.eliminated) == 63
+    checks = [r for r in result.interventions if r.kind == "union-check"]
+    assert len(checks) <= 1 + 7  # the whole union, then log2(64) prefixes
+    assert result.num_interventions <= 64 + len(checks) + 14 + 14
+
+
 def test_t_hci_keeps_a_part_too_rare_to_split_whole():
     # code 1 has the effect; codes 0 and 1 occur in two held-out episodes each, 2 and 3 in 20
     bounds = {0: (-0.01, 0.01), 1: (0.3, 0.5), 2: (-0.01, 0.01), 3: (-0.01, 0.01)}

@@ -155,14 +155,31 @@ class _Search:
                 self._eliminate(drops)
                 return kept
             # Complementary causes among the drops: the first one is truly removable (it was
-            # tested with the current O^w); the rest must be tested again without it. Which
-            # one goes first decides which of two interchangeable causes stays: the one the
+            # tested with the current O^w), and so is the longest run of drops after it whose
+            # union has no effect either; the rest must be tested again without them. Which
+            # drops go first decides which of two interchangeable causes stays: the one the
             # current gate keeps (drops without a preferred code first; the sort is stable),
             # so that the agent's memory does not swap one for the other from round to round.
             drops.sort(key=lambda part: bool(np.isin(part, self.prefer).any()))
-            self._eliminate(drops[:1])
-            parts = drops[1:]
+            removable = self._removable_prefix(drops)
+            self._eliminate(drops[:removable])
+            parts = drops[removable:]
         return kept
+
+    def _removable_prefix(self, drops: list[np.ndarray]) -> int:
+        """The largest m such that masking drops[:m] together (with O^w) has no effect, given
+        that drops[:1] has none and all of them together have one. Binary search: the ATE is
+        monotone in the masked set, so about log2(len(drops)) union checks. Re-testing the
+        rest one elimination at a time instead cost a quadratic number of tests on a BabyAI
+        pool (37,303 interventions on 6158 codes, the same 6-code part tested up to 191 times)."""
+        low, high = 1, len(drops)  # drops[:low] has no effect, drops[:high] has one
+        while high - low > 1:
+            middle = (low + high) // 2
+            if self._union_has_effect(drops[:middle]):
+                high = middle
+            else:
+                low = middle
+        return low
 
     def _union_has_effect(self, parts: list[np.ndarray]) -> bool:
         """Whether masking all `parts` together (with O^w) may have an effect."""
