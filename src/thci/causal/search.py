@@ -13,8 +13,10 @@ masked. If parts were only tested side by side, two complementary causes (say th
 codes 0 and 1 of Maze level 1, each of which the other's absence reveals) would both look
 removable. Tests run side by side for speed, and every batch that would eliminate several
 parts first checks their union in one more intervention; only when that union has an effect
-are the parts resolved one at a time. Causal verdicts never need re-checking: masking more can
-only lose information (the ATE is monotone in the masked set).
+are the parts resolved in order: the longest leading run of them whose union has no effect is
+eliminated (found by binary search on union checks) and the rest are tested again. Causal
+verdicts never need re-checking: masking more can only lose information (the ATE is monotone
+in the masked set).
 
 A test has three outcomes, by where the ATE's confidence interval lies against the band
 [−ξ, ξ]:
