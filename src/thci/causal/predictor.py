@@ -214,13 +214,13 @@ class CodeData:
         self.test = (self.fold >= 0).nonzero().flatten()  # held out for some member
 
     def _episodes_with_code(self) -> torch.Tensor:
-        """(|Ô|,) long: in how many episodes each code occurs (o_1 … o_{L+1})."""
+        """(|Ô|,) long: in how many episodes each code occurs (o_1 … o_{L+1}). Counts distinct
+        (episode, code) pairs, so memory stays O(E·L) however large Ô is."""
         lengths = self.valid.sum(dim=1)
         real = torch.arange(self.ids.shape[1]).unsqueeze(0) <= lengths.unsqueeze(1)
         episode = torch.arange(len(self.ids)).unsqueeze(1).expand_as(self.ids)
-        present = torch.zeros(len(self.ids), self.num_codes, dtype=torch.bool)
-        present[episode[real], self.ids[real]] = True
-        return present.sum(dim=0)
+        pairs = torch.unique(episode[real] * self.num_codes + self.ids[real])
+        return torch.bincount(pairs % self.num_codes, minlength=self.num_codes)
 
     def held_out(self, member: int) -> torch.Tensor:
         """Index tensor of the episodes member `member` is measured on (not fitted on)."""
