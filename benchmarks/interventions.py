@@ -9,7 +9,8 @@ budget are skipped and marked as such (HCI needs |O| interventions, fine-grained
     .venv/bin/python benchmarks/interventions.py            # |O| = 1e2 .. 1e5
     .venv/bin/python benchmarks/interventions.py --sizes 100 1000
 
-Writes benchmarks/results/interventions.json and interventions.png, and prints a table.
+Records of sizes not run keep their earlier values. Writes
+benchmarks/results/interventions.json and interventions.png, and prints a table.
 """
 
 from __future__ import annotations
@@ -125,6 +126,11 @@ def plot(records: list[dict], path: Path) -> None:
     fig.savefig(path, dpi=120)
 
 
+def _load(path: Path) -> list[dict]:
+    """Earlier records, or none if the file is missing."""
+    return json.loads(path.read_text()) if path.exists() else []
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[100, 1000, 10_000, 100_000])
@@ -134,10 +140,13 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     RESULTS.mkdir(exist_ok=True)
-    records = []
+    path = RESULTS / "interventions.json"
+    # Sizes not run now keep their earlier records, so one size can be (re)run on its own.
+    records = [r for r in _load(path) if r["num_codes"] not in args.sizes]
     for n in args.sizes:  # results are written after every size, so a long run keeps them
         records.append(run_size(n, args.hci_limit, args.fine_limit, args.z))
-        (RESULTS / "interventions.json").write_text(json.dumps(records, indent=2) + "\n")
+        records.sort(key=lambda r: r["num_codes"])
+        path.write_text(json.dumps(records, indent=2) + "\n")
         plot(records, RESULTS / "interventions.png")
     print(f"\n{'|Ô|':>7} | {'fine-grained':>16} | {'HCI':>16} | {'T-HCI':>16} | bound | exact")
     for r in records:

@@ -96,6 +96,23 @@ def test_gate_reproduces_eliminated_set_and_decides_unseen_observations():
     assert gate.keep(unseen).shape == (5,)
 
 
+def test_an_empty_causal_memory_ignores_every_past_observation_until_the_first_gate():
+    torch.manual_seed(0)
+    gate = Gate(6, empty_before_fit=True)
+    one_hot = torch.eye(6)
+    assert not gate.keep(one_hot).any()  # inactive: keeps nothing
+    agent = ActorCritic(6, 3, make_memory("lstm", 8, 8), 8, gate=gate)
+    state = agent.initial_state(1)
+    history = one_hot[[0, 1, 3, 1, 4]].unsqueeze(0)
+    other_past = one_hot[[5, 2, 2, 0, 4]].unsqueeze(0)  # every past observation changed
+    logits, _, _ = agent(history, state)
+    assert torch.allclose(logits[0, 4], agent(other_past, state)[0][0, 4], atol=1e-6)
+    eliminated = torch.tensor([False, True, True, True, True, True])
+    gate.fit(one_hot, eliminated)  # the first gate: code 0 is kept from now on
+    assert torch.equal(gate.keep(one_hot), ~eliminated)
+    assert not torch.allclose(logits[0, 4], agent(history, state)[0][0, 4], atol=1e-4)
+
+
 def test_gate_reverses_a_decision_earlier_rounds_made_confidently():
     torch.manual_seed(0)
     observations = torch.eye(15)
@@ -265,13 +282,22 @@ def test_a_confidently_negative_ate_keeps_the_set(search):
 
 
 @pytest.mark.parametrize("search", [hci, lambda e: t_hci(e, z=2)])
-def test_only_an_interval_above_xi_confirms_a_cause(search):
-    # code 1: interval above xi (confirmed, final); code 2: straddles xi (undecided: kept for
-    # now, tested again next round); codes 0 and 3: inside [-xi, xi] (eliminated)
-    bounds = {0: (-0.01, 0.01), 1: (0.3, 0.5), 2: (0.02, 0.15), 3: (-0.02, 0.0)}
+def test_an_estimate_above_xi_that_is_significantly_positive_confirms_a_cause(search):
+    # confirmed (final): code 1, interval above xi; code 4, estimate 0.15 > xi with a lower
+    # bound above 0. Undecided (kept for now, tested again next round): code 2, estimate 0.085
+    # below xi; code 5, estimate 0.15 but a lower bound below 0. Codes 0 and 3: inside
+    # [-xi, xi] (eliminated).
+    bounds = {
+        0: (-0.01, 0.01),
+        1: (0.3, 0.5),
+        2: (0.02, 0.15),
+        3: (-0.02, 0.0),
+        4: (0.05, 0.25),
+        5: (-0.05, 0.35),
+    }
     result = search(_TableEstimator(bounds))
-    assert sorted(result.causal.tolist()) == [1, 2]
-    assert result.confirmed.tolist() == [1]
+    assert sorted(result.causal.tolist()) == [1, 2, 4, 5]
+    assert sorted(result.confirmed.tolist()) == [1, 4]
 
 
 class _ComplementEstimator(_TableEstimator):

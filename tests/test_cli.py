@@ -208,6 +208,8 @@ T_HCI_FAST = [
     "512",
     "--ci-lag",
     "512",
+    "--ci-first-lag",
+    "1024",
     "--ci-min-episodes",
     "50",
     "--ci-min-rewarded-episodes",
@@ -233,6 +235,9 @@ def test_t_hci_run_reports_ci_and_resumes_to_the_same_result(tmp_path):
     assert reference["final_ci_seconds"] > 0
     rounds = (tmp_path / "reference" / "ci_rounds.csv").read_text().splitlines()
     assert len(rounds) == 1 + reference["ci_rounds"]
+    rows = [dict(zip(rounds[0].split(","), r.split(","), strict=True)) for r in rounds[1:]]
+    lags = [int(r["applied_step"]) - int(r["global_step"]) for r in rows]
+    assert lags == [1024] + [512] * (len(rows) - 1)  # --ci-first-lag, then --ci-lag
     log = json.loads((tmp_path / "reference" / "ci_interventions.json").read_text())
     assert len(log) == reference["interventions"]
 

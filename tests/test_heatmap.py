@@ -43,7 +43,7 @@ def test_trajectory_is_a_walk_through_the_maze_from_its_start(run_dir):
     moves = np.abs(np.diff(trajectory.positions, axis=0)).sum(axis=1)
     assert set(moves.tolist()) <= {0, 1}  # one cell at a time (0: bumped into a wall)
     assert trajectory.weights.shape == (steps, 1)
-    assert np.all(trajectory.weights == 1.0)  # an unfitted gate keeps every observation
+    assert np.all(trajectory.weights == 0.0)  # an unfitted gate: the memory starts empty
     assert trajectory.frame.shape[0] == pytest.approx(maze.shape[0] * trajectory.cell_pixels)
 
 

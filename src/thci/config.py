@@ -124,6 +124,20 @@ class TrainConfig:
     6-30% of its wall-clock); with 32768 it waited 2.6-5.9 s per run (2-13%; with the presets'
     later exploration settings 3.0-12.3 s, 1.7-16%), mostly in the first round, which also
     starts the worker process, and L1-L2 are solved before the first gate."""
+    ci_first_lag: int = 8192
+    """ci_lag of the first round. Before the first gate the causal memory is empty
+    (ci_initial_memory), so the first gate is what lets the policy remember at all: on Maze L1
+    (seeds 1-3) it solved at 48.6k-49.8k steps with the first gate 32768 steps after its round,
+    at ~20k with 8192."""
+    ci_initial_memory: Literal["empty", "full"] = "empty"
+    """What the causal memory holds before the first gate. empty: nothing (the policy is
+    memoryless until CI has found what matters); full: every observation (the paper's O^w = ∅
+    at the start). With full, the first gate changes the input sequence of an LSTM trained on
+    everything, and a policy that already solved was thrown off (Maze L1, seeds 1-5 trained
+    past solving: success 1.0 to 0.0 at the gate in seed 1, and 3 of 5 ended at ~0.5); and the
+    first round's pool comes from a policy that already exploits the causes, which hides their
+    effect (seed 2's first round, at success 0.52, eliminated both indicators). A memoryless
+    policy cannot exploit history, so its pool shows what history decides."""
     ci_async: bool = True
     """Run CI rounds in a worker process beside the RL loop (Fig. 3); results are identical
     either way, as the gate takes effect at the same step."""
@@ -232,8 +246,10 @@ class TrainConfig:
             raise ThciError(
                 f"--ci-min-rewarded-episodes must be >= 0, got {self.ci_min_rewarded_episodes}"
             )
-        if self.ci_lag < 0:
-            raise ThciError(f"--ci-lag must be >= 0, got {self.ci_lag}")
+        for name in ("ci_lag", "ci_first_lag"):
+            if getattr(self, name) < 0:
+                flag = "--" + name.replace("_", "-")
+                raise ThciError(f"{flag} must be >= 0, got {getattr(self, name)}")
         for name in ("ci_finetune_steps", "ci_warm_steps"):
             if getattr(self, name) < 0:
                 raise ThciError(f"--{_flag(name)} must be >= 0, got {getattr(self, name)}")

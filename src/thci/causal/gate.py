@@ -4,7 +4,8 @@ Gate_ϑ(o) ∈ [0, 1] approximates I(o ∈ O^w). It is a small network on the ob
 not a lookup table of codes, so it also decides for observations never seen in the pool. It is
 fitted after each CI round on one representative observation per code of Ô with the L1 loss of
 Eq. 10; an observation is removed from memory when Gate_ϑ(o) > 0.5. Until the first round the
-gate is inactive and the memory keeps everything.
+gate is inactive, and the memory keeps nothing (the default, `--ci-initial-memory empty`) or
+everything (`full`, the paper's O^w = ∅).
 """
 
 from __future__ import annotations
@@ -27,13 +28,20 @@ class GateFit:
 class Gate(nn.Module):
     """Gate_ϑ(o) = sigmoid(MLP(o)), 1 = remove from memory.
 
+    Before its first fit the gate is inactive: it keeps nothing (`empty_before_fit`, the causal
+    memory starts empty) or everything.
+
     Args:
         observation_size: D of a flat observation.
         hidden_size: width of the hidden layer.
+        empty_before_fit: whether the inactive gate removes every observation.
     """
 
-    def __init__(self, observation_size: int, hidden_size: int = 64) -> None:
+    def __init__(
+        self, observation_size: int, hidden_size: int = 64, empty_before_fit: bool = False
+    ) -> None:
         super().__init__()
+        self.empty_before_fit = empty_before_fit
         self.net = nn.Sequential(
             nn.Linear(observation_size, hidden_size), nn.ReLU(), nn.Linear(hidden_size, 1)
         )
@@ -45,8 +53,11 @@ class Gate(nn.Module):
 
     @torch.no_grad()
     def keep(self, obs: torch.Tensor) -> torch.Tensor | None:
-        """(...) bool, False where the observation is removed; None while inactive."""
+        """(...) bool, False where the observation is removed; None (keep all) while inactive,
+        unless `empty_before_fit`."""
         if not bool(self.active):
+            if self.empty_before_fit:
+                return torch.zeros(obs.shape[:-1], dtype=torch.bool, device=obs.device)
             return None
         return self(obs) <= 0.5
 

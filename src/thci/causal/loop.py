@@ -4,8 +4,11 @@ After every rollout the loop discretizes the observations, cuts the rollout into
 episodes and adds them to the replay pool. On its schedule it starts a CI round on a snapshot
 of the pool: fit the effect predictor, search the observed space Ô for the observations
 without causal effect (O^w), and fit the gate to O^w (Eq. 10). The round's gate takes effect
-``ci_lag`` env steps after the round started, from which moment the agent's causal memory drops
-those observations. Rounds stop once two in a row agree (or after ``ci_max_rounds``).
+``ci_lag`` env steps after the round started (``ci_first_lag`` for the first round), from which
+moment the agent's causal memory drops those observations. Until then the memory holds nothing
+(``ci_initial_memory``: the policy starts memoryless, so the first pool shows what history
+decides instead of hiding it behind a policy that already uses it). Rounds stop once two in a
+row agree (or after ``ci_max_rounds``).
 
 As in Fig. 3, the two loops run side by side: with ``ci_async`` a round runs in a worker
 process while the RL loop goes on, and the RL loop waits only if the round is not finished when
@@ -289,7 +292,8 @@ class CausalInferenceLoop:
 
     def _start(self, global_step: int) -> None:
         job = self.make_job(self.pool.arrays())
-        self._submit(job, global_step, global_step + self.config.ci_lag)
+        lag = self.config.ci_first_lag if not self.rounds else self.config.ci_lag
+        self._submit(job, global_step, global_step + lag)
 
     def _submit(self, job: CIJob, started_step: int, apply_step: int) -> None:
         blocking = 0.0

@@ -78,7 +78,9 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
         int(envs.single_action_space.n),
         memory,
         config.encoder_size,
-        gate=Gate(observation_size) if causal else None,
+        gate=Gate(observation_size, empty_before_fit=config.ci_initial_memory == "empty")
+        if causal
+        else None,
         categories=observation_categories(envs.single_observation_space),
     )
 
