@@ -124,11 +124,14 @@ class TrainConfig:
     6-30% of its wall-clock); with 32768 it waited 2.6-5.9 s per run (2-13%; with the presets'
     later exploration settings 3.0-12.3 s, 1.7-16%), mostly in the first round, which also
     starts the worker process, and L1-L2 are solved before the first gate."""
-    ci_first_lag: int = 8192
-    """ci_lag of the first round. Before the first gate the causal memory is empty
-    (ci_initial_memory), so the first gate is what lets the policy remember at all: on Maze L1
-    (seeds 1-3) it solved at 48.6k-49.8k steps with the first gate 32768 steps after its round,
-    at ~20k with 8192."""
+    ci_first_lag: int = 0
+    """ci_lag of the first round; 0: the RL loop waits for it (one round, a few seconds). Before
+    the first gate the causal memory is empty (ci_initial_memory), so the policy is memoryless
+    until then, and the longer that lasts the more firmly it settles on one guess. Maze L1
+    seeds 1-5 solved at 48.6k-49.8k steps (seeds 1-3) with a first lag of 32768, at
+    20.4k-43.4k with 8192; L2 at 8192 solved 3 of 5 within 80k, the other two going to the
+    guessed goal in its variant and never finding the other goal in the other one. With 0:
+    L1 seeds 1 / 5 at 14.1k / 16.5k, L2 seeds 1 / 2 at 16.8k / 14.3k (seed 5 still stuck)."""
     ci_initial_memory: Literal["empty", "full"] = "empty"
     """What the causal memory holds before the first gate. empty: nothing (the policy is
     memoryless until CI has found what matters); full: every observation (the paper's O^w = ∅
