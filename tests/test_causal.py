@@ -403,6 +403,28 @@ def test_warm_start_carries_each_code_to_its_row_and_class():
     assert not torch.equal(new.w2[..., 2], old.w2[..., 2])  # class of code 40: fresh
 
 
+def test_shared_replicas_of_a_member_are_views_that_predict_like_copies():
+    torch.manual_seed(0)
+    model = BatchedPredictor(
+        2, num_codes=6, num_actions=2, num_classes=6, config=PredictorConfig(), max_steps=4
+    )
+    with torch.no_grad():
+        for parameter in model.parameters():
+            parameter.normal_()
+    copied = model.replicate(3, member=1)
+    shared = model.replicate(3, member=1, shared=True)
+    # views of member 1's parameters: nothing of size |Ô| is copied per arm
+    assert shared.embed.data_ptr() == model.embed[1].data_ptr()
+    assert shared.embed.stride(0) == 0 and copied.embed.stride(0) != 0
+    ids = torch.tensor([[1, 2, 3, 4, 5], [0, 2, 2, 5, 1]])
+    masked = torch.rand(3, 2, 5) < 0.5  # a different intervention per arm
+    codes = torch.rand(3, 1, 6) < 0.5
+    actions, valid = torch.zeros(2, 4, dtype=torch.long), torch.ones(2, 4, dtype=torch.bool)
+    torch.testing.assert_close(
+        shared(ids, masked, codes, actions, valid), copied(ids, masked, codes, actions, valid)
+    )
+
+
 def test_codes_seen_in_few_episodes_share_one_embedding_and_are_still_masked_alone():
     codes = np.array([[0, 1, 2, 3], [0, 1, 4, 3], [0, 1, 2, 3], [0, 5, 2, 3]])
     pool = pad_episodes(
