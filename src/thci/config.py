@@ -145,8 +145,9 @@ class TrainConfig:
     """Run CI rounds in a worker process beside the RL loop (Fig. 3); results are identical
     either way, as the gate takes effect at the same step."""
     ci_cumulative: bool = True
-    """Observations confirmed causal in a round (confidence interval above xi) stay causal in
-    later rounds: they are not tested again (undecided ones are). Once the policy acts on a
+    """Observations confirmed causal in a round (ATE estimate above xi, lower bound above 0)
+    stay causal in later rounds: they are not tested again (undecided ones are). Once the
+    policy acts on a
     cause, the path it takes tells the outcome as well, and a round on such a pool finds the
     cause redundant: on Maze L1 the third round (pool of a solved policy) kept nothing and
     success fell from 0.9+ to 0.52."""
