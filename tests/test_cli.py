@@ -320,3 +320,14 @@ def test_atomic_writes_get_the_mode_of_a_plain_open(tmp_path):
     plain.write_bytes(b"x")
     atomic_write_bytes(atomic, b"x")
     assert atomic.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777
+
+
+def test_a_config_written_before_the_empty_start_resumes_with_a_full_memory():
+    from thci.config import TrainConfig
+
+    current = TrainConfig(method="t-hci", ci_lag=4096).to_dict()
+    assert TrainConfig.from_dict(current) == TrainConfig(method="t-hci", ci_lag=4096)
+    old = {k: v for k, v in current.items() if k not in ("ci_initial_memory", "ci_first_lag")}
+    restored = TrainConfig.from_dict(old)
+    # as such runs ran: everything in memory until the first gate, ci_lag steps after its round
+    assert restored.ci_initial_memory == "full" and restored.ci_first_lag == 4096

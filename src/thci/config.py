@@ -123,15 +123,15 @@ class TrainConfig:
     8192 the RL loop waited for almost every round (Maze L3-L4, 5 seeds each: 10-28 s per run,
     6-30% of its wall-clock); with 32768 it waited 2.6-5.9 s per run (2-13%; with the presets'
     later exploration settings 3.0-12.3 s, 1.7-16%), mostly in the first round, which also
-    starts the worker process, and L1-L2 are solved before the first gate."""
+    starts the worker process (measured when the first round used ci_lag too)."""
     ci_first_lag: int = 0
     """ci_lag of the first round; 0: the RL loop waits for it (one round, a few seconds). Before
     the first gate the causal memory is empty (ci_initial_memory), so the policy is memoryless
-    until then, and the longer that lasts the more firmly it settles on one guess. Maze L1
-    seeds 1-5 solved at 48.6k-49.8k steps (seeds 1-3) with a first lag of 32768, at
-    20.4k-43.4k with 8192; L2 at 8192 solved 3 of 5 within 80k, the other two going to the
-    guessed goal in its variant and never finding the other goal in the other one. With 0:
-    L1 seeds 1 / 5 at 14.1k / 16.5k, L2 seeds 1 / 2 at 16.8k / 14.3k (seed 5 still stuck)."""
+    until then, and the longer that lasts the more firmly it settles on one guess. On Maze L1
+    T-HCI solved at 48.6k-49.8k steps (seeds 1-3) with a first lag of 32768, at 20.4k-43.4k
+    (seeds 1-5) with 8192 and at 13.4k-16.5k with 0 (LSTM: 11.9k-17.3k); on L2 it solved 3 of 5
+    within 80k steps with 8192 and 4 of 5 with 0 (the others tell the variants apart but, in
+    one of them, never find its goal)."""
     ci_initial_memory: Literal["empty", "full"] = "empty"
     """What the causal memory holds before the first gate. empty: nothing (the policy is
     memoryless until CI has found what matters); full: every observation (the paper's O^w = ∅
@@ -147,10 +147,9 @@ class TrainConfig:
     ci_cumulative: bool = True
     """Observations confirmed causal in a round (ATE estimate above xi, lower bound above 0)
     stay causal in later rounds: they are not tested again (undecided ones are). Once the
-    policy acts on a
-    cause, the path it takes tells the outcome as well, and a round on such a pool finds the
-    cause redundant: on Maze L1 the third round (pool of a solved policy) kept nothing and
-    success fell from 0.9+ to 0.52."""
+    policy acts on a cause, the path it takes tells the outcome as well, and a round on such a
+    pool finds the cause redundant: on Maze L1 the third round (pool of a solved policy) kept
+    nothing and success fell from 0.9+ to 0.52."""
     ci_min_episodes: int = 200
     """Episodes the replay pool must hold before the first CI round (cross-fitting holds each
     out once: 200 is 4 folds of 50). Maze L1-L2 are solved in ~1000 episodes."""
@@ -323,6 +322,11 @@ class TrainConfig:
                 f"config has unknown fields {unknown}: written by another thci version?"
             )
         values = dict(data)
+        # Configs written before the causal memory could start empty (commit c38c35b) ran with
+        # it full and their first gate ci_lag steps after its round: resume them as they ran.
+        if "ci_initial_memory" not in values:
+            values["ci_initial_memory"] = "full"
+            values.setdefault("ci_first_lag", values.get("ci_lag", cls.ci_lag))
         if values.get("run_dir") is not None:
             values["run_dir"] = Path(values["run_dir"])
         return cls(**values)
