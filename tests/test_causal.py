@@ -416,6 +416,8 @@ def test_shared_replicas_of_a_member_are_views_that_predict_like_copies():
     # views of member 1's parameters: nothing of size |Ô| is copied per arm
     assert shared.embed.data_ptr() == model.embed[1].data_ptr()
     assert shared.embed.stride(0) == 0 and copied.embed.stride(0) != 0
+    with pytest.raises(ValueError):  # views of *one* member only
+        model.replicate(3, shared=True)
     ids = torch.tensor([[1, 2, 3, 4, 5], [0, 2, 2, 5, 1]])
     masked = torch.rand(3, 2, 5) < 0.5  # a different intervention per arm
     codes = torch.rand(3, 1, 6) < 0.5

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from thci.cli import main
+from thci.config import TrainConfig
 from thci.rl.trainer import TIMING_FIELDS
 
 FAST = ["--no-progress", "--num-envs", "8", "--num-steps", "32"]
@@ -323,8 +324,6 @@ def test_atomic_writes_get_the_mode_of_a_plain_open(tmp_path):
 
 
 def test_a_config_written_before_the_empty_start_resumes_with_a_full_memory():
-    from thci.config import TrainConfig
-
     current = TrainConfig(method="t-hci", ci_lag=4096).to_dict()
     assert TrainConfig.from_dict(current) == TrainConfig(method="t-hci", ci_lag=4096)
     old = {k: v for k, v in current.items() if k not in ("ci_initial_memory", "ci_first_lag")}

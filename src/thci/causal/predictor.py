@@ -335,10 +335,12 @@ class BatchedPredictor(nn.Module):
         self, copies: int, member: int | None = None, shared: bool = False
     ) -> BatchedPredictor:
         """A (M·copies)-model predictor: `copies` consecutive copies of each of the M models;
-        with `member`, `copies` copies of that model alone. `shared` (with `member`): the
-        copies are views of the one model's parameters, for evaluation only. Copying the
+        with `member`, `copies` copies of that model alone. `shared` (needs `member`): the
+        copies are views of that model's parameters, for evaluation only. Copying the
         embeddings of every arm cost more than the evaluation itself on large Ô (App. J with
         10^5 codes: 17 arms x 2 x 10^5 x 16 floats per fold and pass)."""
+        if shared and member is None:
+            raise ValueError("shared replicas are views of one member: pass member")
         clone = BatchedPredictor.__new__(BatchedPredictor)
         nn.Module.__init__(clone)
         clone.target, clone.num_actions = self.target, self.num_actions
@@ -347,7 +349,7 @@ class BatchedPredictor(nn.Module):
         chosen = slice(None) if member is None else slice(member, member + 1)
         for name in ("embed", "mask_embed", "step_embed", "w1", "b1", "w2", "b2"):
             value = getattr(self, name).detach()[chosen]
-            if shared and member is not None:
+            if shared:
                 value = value.expand(copies, *value.shape[1:])
             else:
                 value = value.repeat_interleave(copies, dim=0)

@@ -26,10 +26,10 @@ A test has three outcomes, by where the ATE's confidence interval lies against t
   A confirmed single observation is causal for good: the CI loop does not test it again
   (`keep` in later rounds), because once the policy acts on a cause, the path it takes tells
   the outcome too and a later pool shows the cause as redundant. (Requiring the whole interval
-  above ξ confirmed too little: each of Maze L1's two complementary indicators has a single
-  ATE of 0.11-0.31 with a lower bound of 0.03-0.15, so a round on an early pool left them
-  undecided, and the next round, on the pool of the policy that had learned to use them,
-  eliminated both: success fell to ~0.5.)
+  above ξ confirmed too little: tested alone, Maze L1's two complementary indicators had ATEs
+  of 0.11-0.31 with lower bounds of 0.03-0.15 in 9 of 10 first-round tests (five runs), so an
+  early round left them undecided, and the next round, on the pool of the policy that had
+  learned to use them, eliminated both: success fell to ~0.5.)
 * anything else: undecided. The set is kept (a wrongly eliminated cause is gone from the
   agent's memory, a wrongly kept set only costs compression) and tested again in the next
   round on a larger pool. This covers a confidently negative estimate too: a true ATE is never
