@@ -1,12 +1,15 @@
 """The causal engine against cases with a known answer."""
 
 import math
+from types import SimpleNamespace
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 
 from thci.causal.gate import Gate
+from thci.causal.loop import CausalInferenceLoop, CIOutcome, _Computed, _PendingRound
 from thci.causal.predictor import (
     BatchedPredictor,
     CodeData,
@@ -16,9 +19,10 @@ from thci.causal.predictor import (
     PredictorConfig,
 )
 from thci.causal.replay import PoolEpisode, ReplayPool, pad_episodes
-from thci.causal.search import fine_grained_ci, hci, t_hci
+from thci.causal.search import CIResult, fine_grained_ci, hci, t_hci
 from thci.causal.synthetic import generate_planted_episodes
 from thci.causal.taie import measure_taie, taie_of_rollout
+from thci.config import TrainConfig
 from thci.envs.paper_maze import load_maze_level
 from thci.experiments.demo import confounding_demo, door_deciders_kept
 from thci.memory import make_memory
@@ -480,3 +484,23 @@ def test_reward_target_drops_what_only_decides_where_the_agent_goes():
     assert len(kept["dynamics"] & {1, 2}) >= 1 and len(kept["dynamics"] & {3, 4}) >= 1
     assert len(kept["reward"] & {1, 2}) >= 1 and not kept["reward"] & {3, 4}
     assert not (kept["dynamics"] | kept["reward"]) & {7, 8, 9}
+
+
+def test_ci_rounds_go_on_while_the_gate_keeps_an_undecided_observation():
+    config = TrainConfig(method="t-hci", ci_min_episodes=0, ci_min_rewarded_episodes=0)
+    loop = CausalInferenceLoop(config, gym.spaces.Box(0, 1, (3,)), 2, 1, Gate(3))
+    job = SimpleNamespace(pool=SimpleNamespace(lengths=np.ones(5)))
+    observed = np.arange(3)
+
+    def apply_round(confirmed: list[int]) -> None:
+        # every round keeps codes 0 and 1 (eliminates 2); `confirmed` of them for sure
+        result = CIResult("t-hci", observed, np.array([2]), np.array([0, 1]), np.array(confirmed))
+        outcome = CIOutcome(result, Gate(3).state_dict(), 1.0, 0.1, None)
+        loop.pending = _PendingRound(job, 0, 0, _Computed(outcome))
+        loop.step(0)
+
+    apply_round([0])
+    apply_round([])  # two rounds agree, but code 1 is kept only because none could decide
+    assert loop.undecided() == [1] and loop.due(config.ci_every)
+    apply_round([1])
+    assert loop.undecided() == [] and not loop.due(config.ci_every)

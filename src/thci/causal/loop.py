@@ -8,7 +8,7 @@ without causal effect (O^w), and fit the gate to O^w (Eq. 10). The round's gate 
 moment the agent's causal memory drops those observations. Until then the memory holds nothing
 (``ci_initial_memory``: the policy starts memoryless, so the first pool shows what history
 decides instead of hiding it behind a policy that already uses it). Rounds stop once two in a
-row agree (or after ``ci_max_rounds``).
+row agree and every observation they keep is confirmed causal (or after ``ci_max_rounds``).
 
 As in Fig. 3, the two loops run side by side: with ``ci_async`` a round runs in a worker
 process while the RL loop goes on, and the RL loop waits only if the round is not finished when
@@ -206,6 +206,8 @@ class CausalInferenceLoop:
     # ------------------------------------------------------------------ the RL loop's side
     def observe(self, rollout: Rollout) -> None:
         """Add the episodes that ended in `rollout` to the pool (unfinished ones carry over)."""
+        if self.config.ci_async and self._workers is None:
+            self._workers = _start_worker()
         T, N = rollout.dones.shape
         obs = rollout.obs.numpy()
         if self.discretizer is None:  # chosen from the first data, e.g. one-hot -> exact codes
@@ -257,8 +259,15 @@ class CausalInferenceLoop:
             and len(self.pool) >= self.config.ci_min_episodes
             and self.pool.num_rewarded >= self.config.ci_min_rewarded_episodes
             and len(self.rounds) < self.config.ci_max_rounds
-            and self.stable_rounds < 2
+            and (self.stable_rounds < 2 or bool(self.undecided()))
         )
+
+    def undecided(self) -> list[int]:
+        """Codes the current gate keeps that no round has confirmed causal: kept only because
+        the last round could not decide, so the rounds go on (on a larger pool) until it can."""
+        if self.last_result is None:
+            return []
+        return sorted({int(c) for c in self.last_result.causal} - self.causal_so_far)
 
     def make_job(self, pool: PoolArrays) -> CIJob:
         """The CI round of the next round's index on `pool` (episodes of this run's pool)."""
@@ -299,9 +308,8 @@ class CausalInferenceLoop:
         blocking = 0.0
         outcome: _Outcome
         if self.config.ci_async:
-            if self._workers is None:  # spawn: a fresh interpreter, safe with torch threads
-                context = multiprocessing.get_context("spawn")
-                self._workers = context.Pool(1, initializer=die_with_parent)
+            if self._workers is None:  # a round submitted before any rollout (a resumed one)
+                self._workers = _start_worker()
             outcome = self._workers.apply_async(run_ci_job, (job,))
         else:
             started = time.perf_counter()
@@ -495,6 +503,18 @@ class CausalInferenceLoop:
         if pending is not None:
             pool = PoolArrays(**{k: v.numpy() for k, v in pending["pool"].items()})
             self._submit(self.make_job(pool), pending["started_step"], pending["apply_step"])
+
+
+def _start_worker() -> Pool:
+    """The CI worker process, started with the run: spawned (a fresh interpreter, safe with
+    torch threads), it imports torch and this module while the RL loop fills the pool, instead
+    of while the RL loop waits for the first round (~2 s of each run's waiting)."""
+    return multiprocessing.get_context("spawn").Pool(1, initializer=_init_worker)
+
+
+def _init_worker() -> None:
+    """Worker initializer; unpickling it imports this module (torch, the predictor)."""
+    die_with_parent()
 
 
 def _arrays_to_tensors(arrays: PoolArrays) -> dict[str, torch.Tensor]:
