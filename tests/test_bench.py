@@ -131,8 +131,11 @@ def test_presets_name_the_papers_methods_and_are_valid():
     comparison = load_grid("maze-lstm-vs-thci").configs()
     assert len(comparison) == 4 * 2 * 5
     hard = [c for c in comparison if c.env.endswith(("L3-v0", "L4-v0"))]
-    assert all(c.total_steps == 1_000_000 and c.exploration == "episodic-count" for c in hard)
-    assert all(c.count_memory for c in hard)  # it applies to t-hci; lstm counts places alone
+    assert all(c.total_steps == 1_000_000 for c in hard)
+    assert {c.total_steps for c in comparison if c not in hard} == {200_000}
+    # one set of settings on every level: the count-memory bonus applies to t-hci, lstm
+    # counts places alone
+    assert all(c.exploration == "episodic-count" and c.count_memory for c in comparison)
     budgets = {c.method: c.total_steps for c in level3}
     assert budgets["lstm"] == 300_000 and budgets["wmg"] == 4_000  # the method's budget wins
 
