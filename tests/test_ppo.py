@@ -68,3 +68,7 @@ def test_memoryless_policy_ignores_the_past():
     other, _, _ = agent(other_past, agent.initial_state(2))
     assert torch.allclose(logits[:, 4], other[:, 4])
     assert not torch.allclose(logits[:, 3], other[:, 3])  # the present still matters
+    # training passes (no final state) see exactly what a sequence call sees
+    logits, values, _ = agent(obs, agent.initial_state(4))
+    train_logits, train_values = agent.evaluate(obs, agent.initial_state(4))
+    assert torch.equal(train_logits, logits) and torch.equal(train_values, values)

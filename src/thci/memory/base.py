@@ -67,6 +67,13 @@ class Memory(nn.Module, ABC):
             outputs of shape (B, L, output_size) and the state after the last step, (B, state_size).
         """
 
+    def outputs(
+        self, x: torch.Tensor, state: torch.Tensor, keep: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The outputs of :meth:`forward` alone, (B, L, output_size), for training passes that
+        discard the final state; a memory whose final state costs extra work skips it."""
+        return self.forward(x, state, keep)[0]
+
     def observation_weights(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor | None:
         """ν(o_t): the weight the memory puts on each step's observation, for TAIE and heatmaps.
 

@@ -40,6 +40,20 @@ class RecurrentMemory(Memory):
         self, x: torch.Tensor, state: torch.Tensor, keep: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """See :meth:`Memory.forward`; x (B, L, D), state (B, S) -> (B, L, H), (B, S)."""
+        out, final = self._forward(x, state, keep, with_final=True)
+        assert final is not None
+        return out, final
+
+    def outputs(
+        self, x: torch.Tensor, state: torch.Tensor, keep: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """See :meth:`Memory.outputs`: a gated LSTM's final state needs a second, packed run
+        (:meth:`_final_state`, ~a sixth of a training pass), which this skips."""
+        return self._forward(x, state, keep, with_final=False)[0]
+
+    def _forward(
+        self, x: torch.Tensor, state: torch.Tensor, keep: torch.Tensor | None, with_final: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         if keep is None or bool(keep.all()):
             return self._run(x, state, None)
         _, steps, size = x.shape
@@ -53,9 +67,11 @@ class RecurrentMemory(Memory):
         # The RNN is causal, so the outputs of each row's kept prefix do not depend on the
         # padding after it: one plain call gives them (a packed sequence costs 2.8x on CPU).
         out, _ = self._run(compact, state, None)
-        final = self._final_state(compact, state, kept, out)
-        # Rows that kept nothing keep their state; step t reads the last kept output <= t.
-        final = torch.where((kept > 0).unsqueeze(1), final, state)
+        final = None
+        if with_final:  # rows that kept nothing keep their state
+            final = self._final_state(compact, state, kept, out)
+            final = torch.where((kept > 0).unsqueeze(1), final, state)
+        # Step t reads the last kept output <= t.
         last_kept = torch.cumsum(keep.long(), dim=1) - 1  # (B, L), -1 before the first kept
         read = out.gather(1, last_kept.clamp(min=0).unsqueeze(-1).expand(-1, -1, out.shape[-1]))
         initial = state[:, : self.output_size].unsqueeze(1).expand(-1, steps, -1)
@@ -67,9 +83,9 @@ class RecurrentMemory(Memory):
         """(B, S) state after each row's `kept` first steps of `compact` (B, L, D).
 
         A GRU's state is its output at the last kept step. An LSTM's cell state is not an
-        output, so a packed run (without gradient) computes it: the trainers discard the final
-        state of a sequence and act one step at a time (see :meth:`forward`), so no gradient
-        ever flows through it.
+        output, so a packed run (without gradient) computes it: training passes skip it
+        (:meth:`outputs`) and acting runs one step at a time (see :meth:`_forward`), so no
+        gradient ever flows through it.
         """
         if self.cell == "gru":
             return out[torch.arange(len(out)), (kept - 1).clamp(min=0)]

@@ -112,12 +112,32 @@ class ActorCritic(nn.Module):
         Returns:
             logits (B, L, A), values (B, L) and the final state (B, S).
         """
+        memory_input, features, keep = self._memory_args(inputs)
+        out, state = self.memory(memory_input, state, keep)
+        return *self._heads(out, features), state
+
+    def evaluate(
+        self, inputs: torch.Tensor, state: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward` without the final state, for training passes: logits (B, L, A) and
+        values (B, L)."""
+        memory_input, features, keep = self._memory_args(inputs)
+        return self._heads(self.memory.outputs(memory_input, state, keep), features)
+
+    def _memory_args(
+        self, inputs: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The memory's input, the encoder's features and the gate's keep mask (B, L)."""
         memory_input, features = self.memory_input(inputs)
         obs = inputs[..., : self.observation_size]
-        keep = None if self.gate is None else self.gate.keep(obs)
-        out, state = self.memory(memory_input, state, keep)
+        return memory_input, features, None if self.gate is None else self.gate.keep(obs)
+
+    def _heads(
+        self, out: torch.Tensor, features: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Logits and values from the memory's outputs and the encoder's features."""
         out = torch.cat((out, features), dim=-1)
-        return self.actor(out), self.critic(out).squeeze(-1), state
+        return self.actor(out), self.critic(out).squeeze(-1)
 
     def step(
         self, obs: torch.Tensor, state: torch.Tensor, episode_start: torch.Tensor

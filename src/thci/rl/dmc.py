@@ -94,7 +94,7 @@ class DMC:
                 mask = valid[which]
                 length = int(mask.sum(dim=1).max())
                 mask = mask[:, :length]
-                q_values, _, _ = agent(obs[which, :length], agent.initial_state(len(which)))
+                q_values, _ = agent.evaluate(obs[which, :length], agent.initial_state(len(which)))
                 q = q_values.gather(-1, actions[which, :length].unsqueeze(-1)).squeeze(-1)[mask]
                 loss = 0.5 * (q - returns[which, :length][mask]).pow(2).mean()
                 if not torch.isfinite(loss):

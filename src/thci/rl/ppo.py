@@ -93,7 +93,7 @@ class PPO:
                     rollout.initial_state[batch.column],
                     agent.initial_state(len(batch.column)),
                 )
-                logits, values, _ = agent(batch.gather(inputs), state)
+                logits, values = agent.evaluate(batch.gather(inputs), state)
                 mask = batch.valid
                 dist = torch.distributions.Categorical(logits=logits[mask])
                 logprob = dist.log_prob(batch.gather(rollout.actions)[mask])
