@@ -488,7 +488,7 @@ def test_reward_target_drops_what_only_decides_where_the_agent_goes():
     assert not (kept["dynamics"] | kept["reward"]) & {7, 8, 9}
 
 
-def test_ci_rounds_go_on_while_the_gate_keeps_an_undecided_observation():
+def test_ci_rounds_go_on_until_the_gate_keeps_only_confirmed_observations():
     config = TrainConfig(method="t-hci", ci_min_episodes=0, ci_min_rewarded_episodes=0)
     loop = CausalInferenceLoop(config, gym.spaces.Box(0, 1, (3,)), 2, 1, Gate(3))
     job = SimpleNamespace(pool=SimpleNamespace(lengths=np.ones(5)))
@@ -502,7 +502,9 @@ def test_ci_rounds_go_on_while_the_gate_keeps_an_undecided_observation():
         loop.step(0)
 
     apply_round([0])
+    assert not loop.settled()  # one round: a second must agree
     apply_round([])  # two rounds agree, but code 1 is kept only because none could decide
-    assert loop.undecided() == [1] and loop.due(config.ci_every)
+    assert loop.undecided() == [1] and loop.due(config.ci_every) and not loop.settled()
     apply_round([1])
     assert loop.undecided() == [] and not loop.due(config.ci_every)
+    assert loop.settled()  # what --stop-on-solve waits for

@@ -205,7 +205,8 @@ class TrainConfig:
     success_return: float | None = None
     """For environments without info['success']: an episode whose return reaches this succeeds."""
     stop_on_solve: bool = False
-    """Stop training as soon as the run is solved."""
+    """Stop training once the run is solved (hci, t-hci: and its CI has settled, so that the
+    gate it ends with is final; steps_to_solve is still where it was solved)."""
 
     # Bookkeeping
     checkpoint_every: int = 20

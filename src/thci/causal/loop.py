@@ -258,8 +258,18 @@ class CausalInferenceLoop:
             and global_step >= self.next_round_step
             and len(self.pool) >= self.config.ci_min_episodes
             and self.pool.num_rewarded >= self.config.ci_min_rewarded_episodes
-            and len(self.rounds) < self.config.ci_max_rounds
-            and (self.stable_rounds < 2 or bool(self.undecided()))
+            and self._more_rounds()
+        )
+
+    def settled(self) -> bool:
+        """No round in flight and none to come: the causal set is final."""
+        return self.pending is None and not self._more_rounds()
+
+    def _more_rounds(self) -> bool:
+        """Rounds go on until two in a row agree and every kept observation is confirmed, or
+        until ``ci_max_rounds``."""
+        return len(self.rounds) < self.config.ci_max_rounds and (
+            self.stable_rounds < 2 or bool(self.undecided())
         )
 
     def undecided(self) -> list[int]:

@@ -250,7 +250,10 @@ def _train(
         )
 
     try:
-        while update < num_updates and not (config.stop_on_solve and tracker.solved):
+        # A causal method's run also waits for CI to settle, so that its gate is final.
+        while update < num_updates and not (
+            config.stop_on_solve and tracker.solved and (ci is None or ci.settled())
+        ):
             if config.anneal_lr:
                 for group in optimizer.param_groups:
                     group["lr"] = config.learning_rate * (1 - update / num_updates)
