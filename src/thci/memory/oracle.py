@@ -23,11 +23,12 @@ class OracleMemory(RecurrentMemory):
     def __init__(self, input_size: int, hidden_size: int) -> None:
         super().__init__(input_size, hidden_size, "lstm")
 
-    def forward(
-        self, x: torch.Tensor, state: torch.Tensor, keep: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """See :meth:`Memory.forward`; x (B, L, D+1) with the label last -> (B, L, H), (B, 2H)."""
-        return super().forward(x[..., :-1], state, x[..., -1] > 0.5)
+    def _forward(
+        self, x: torch.Tensor, state: torch.Tensor, keep: torch.Tensor | None, with_final: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """x (B, L, D+1) with the label last: the label is the keep mask (``forward`` and
+        ``outputs`` both come here)."""
+        return super()._forward(x[..., :-1], state, x[..., -1] > 0.5, with_final)
 
     def observation_weights(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """The labels themselves: (B, L, 1), 1 where the observation is kept."""
