@@ -225,9 +225,12 @@ def test_oracle_keeps_exactly_the_labelled_observations():
     # changing unlabelled observations changes nothing the memory carries
     other = inputs.clone()
     other[..., :OBS] = torch.where(labels.bool().unsqueeze(-1), obs, torch.rand(2, 6, OBS))
-    _, _, state = agent(inputs, agent.initial_state(2))
+    logits, values, state = agent(inputs, agent.initial_state(2))
     _, _, other_state = agent(other, agent.initial_state(2))
     assert torch.allclose(state, other_state)
+    # training passes (no final state) keep the same observations
+    train_logits, train_values = agent.evaluate(inputs, agent.initial_state(2))
+    assert torch.equal(train_logits, logits) and torch.equal(train_values, values)
 
 
 def test_collector_appends_the_positions_the_environment_reports():

@@ -44,6 +44,10 @@ def test_sequence_call_equals_step_loop_with_resets(method):
     tail, _, _ = agent(obs[1:2, 5:], agent.initial_state(1))
     assert torch.allclose(tail[0], step_logits[1, 5:], atol=1e-6)
     assert not torch.allclose(seq_logits[1, 5:], step_logits[1, 5:], atol=1e-4)
+    # training passes (no final state) see exactly what a sequence call sees
+    seq_logits, seq_values, _ = agent(obs, agent.initial_state(4))
+    train_logits, train_values = agent.evaluate(obs, agent.initial_state(4))
+    assert torch.equal(train_logits, seq_logits) and torch.equal(train_values, seq_values)
 
 
 def test_episode_start_zeroes_state():
@@ -68,7 +72,3 @@ def test_memoryless_policy_ignores_the_past():
     other, _, _ = agent(other_past, agent.initial_state(2))
     assert torch.allclose(logits[:, 4], other[:, 4])
     assert not torch.allclose(logits[:, 3], other[:, 3])  # the present still matters
-    # training passes (no final state) see exactly what a sequence call sees
-    logits, values, _ = agent(obs, agent.initial_state(4))
-    train_logits, train_values = agent.evaluate(obs, agent.initial_state(4))
-    assert torch.equal(train_logits, logits) and torch.equal(train_values, values)
