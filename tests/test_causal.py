@@ -87,6 +87,39 @@ def test_masking_removes_exactly_the_intervened_history_and_never_the_current_ob
     )
 
 
+@pytest.mark.parametrize("target", ["reward", "dynamics"])
+def test_predictor_reads_the_running_max_of_the_kept_history_before_each_step(target):
+    """Each transition t's history input is the elementwise max of the embeddings of the kept
+    o_1 … o_{t-1} (zero when none is kept): checked against a step-by-step reference."""
+    torch.manual_seed(0)
+    config = PredictorConfig(target=target, embed_dim=4, hidden_size=8)
+    model = BatchedPredictor(
+        2, num_codes=6, num_actions=3, num_classes=6, config=config, max_steps=5
+    )
+    with torch.no_grad():
+        for parameter in model.parameters():
+            parameter.normal_()
+    ids = torch.tensor([[1, 2, 3, 4, 5, 0], [3, 3, 1, 0, 0, 0]])
+    actions = torch.tensor([[0, 1, 2, 0, 1], [2, 2, 0, 0, 0]])
+    valid = torch.tensor([[True] * 5, [True, True, False, False, False]])
+    masked = torch.rand(2, 2, 6) < 0.4  # per member, different positions removed
+    masked_codes = torch.zeros(2, 1, 6, dtype=torch.bool)
+    out = model(ids, masked, masked_codes, actions, valid)  # (K, n, out)
+    d, num_actions = 4, 3
+    for k in range(2):
+        for row, (b, t) in enumerate(valid.nonzero().tolist()):
+            kept = [model.embed[k, ids[b, j]] for j in range(t) if not masked[k, b, j]]
+            history = torch.stack(kept).max(dim=0).values if kept else torch.zeros(d)
+            action = torch.nn.functional.one_hot(actions[b, t], num_actions).float()
+            parts = [history, model.embed[k, ids[b, t]], action]
+            if target == "reward":
+                parts.append(model.embed[k, ids[b, t + 1]])
+            parts += [model.step_embed[k, t], torch.zeros(d)]  # nothing intervened
+            hidden = torch.relu(torch.cat(parts) @ model.w1[k] + model.b1[k, 0])
+            expected = hidden @ model.w2[k] + model.b2[k, 0]
+            assert torch.allclose(out[k, row], expected, atol=1e-5), (k, b, t)
+
+
 def test_gate_reproduces_eliminated_set_and_decides_unseen_observations():
     torch.manual_seed(0)
     observations = torch.eye(12)

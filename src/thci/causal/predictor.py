@@ -378,19 +378,20 @@ class BatchedPredictor(nn.Module):
             (K, n, out) outputs for the transitions (o_t, a_t) -> (o_{t+1}, r_t) where valid.
         """
         steps = actions.shape[1]
-        removed = masked[:, :, :steps].unsqueeze(-1)
         # Eq. 3: intervened observations -> zero vectors. Running max over the *kept* history
         # only: a removed observation leaves no trace, not even its slot (a zero placeholder
-        # would reveal that a masked code was there).
-        hist = self.embed[:, ids[:, :steps]].masked_fill(removed, float("-inf"))  # (K, B, L, d)
-        # (cummax runs ~1.4x faster along a contiguous last dimension)
-        seen = torch.cummax(hist.transpose(2, 3).contiguous(), dim=-1).values.transpose(2, 3)
-        # h_{t-1} excludes o_t: shift by one step; an empty history is the zero vector
-        seen = torch.cat((torch.full_like(seen[:, :, :1], float("-inf")), seen[:, :, :-1]), 2)
-        seen = seen.masked_fill(torch.isinf(seen), 0.0)
+        # would reveal that a masked code was there). Laid out (K, d, B, L) so the running max
+        # runs along the contiguous last dimension (~1.4x faster than along L in (K, B, L, d)).
+        removed = masked[:, :, :steps].unsqueeze(1)  # (K, 1, B, L)
+        hist = self.embed.transpose(1, 2)[:, :, ids[:, :steps]].masked_fill(removed, -math.inf)
+        seen = torch.cummax(hist, dim=-1).values  # (K, d, B, L): max over o_1 … o_t
 
         # Only the n real transitions are gathered into the first layer's input (K, n, ·).
         rows, cols = valid.nonzero(as_tuple=True)
+        # h_{t-1} excludes o_t: read the running max one step back; an empty history (t = 1,
+        # or nothing kept) is the zero vector.
+        history = seen[:, :, rows, (cols - 1).clamp(min=0)].transpose(1, 2)  # (K, n, d)
+        history = history.masked_fill((cols == 0).view(1, -1, 1) | torch.isinf(history), 0.0)
         num_models, n = self.embed.shape[0], len(rows)
         action = nn.functional.one_hot(actions[rows, cols], self.num_actions).to(hist.dtype)
         following = self.embed[:, ids[rows, cols + 1]]  # o_{t+1}, never masked
@@ -410,8 +411,12 @@ class BatchedPredictor(nn.Module):
             intervened[:, rows] if intervened.shape[1] > 1 else intervened.expand(-1, n, -1)
         )
         current = self.embed[:, ids[rows, cols]]  # o_t, never masked
-        x = torch.cat((seen[:, rows, cols], current, *extra, when, intervened), dim=-1)
+        x = torch.cat((history, current, *extra, when, intervened), dim=-1)
         hidden = torch.relu(torch.baddbmm(self.b1, x, self.w1))
+        if self.w2.shape[-1] == 1:
+            # the reward target's single output: a batched matrix-vector product through bmm
+            # cost ~7x this product-sum (forward and backward, 4 x 2048 x 64 on one thread)
+            return (hidden * self.w2.transpose(1, 2)).sum(-1, keepdim=True) + self.b2
         return torch.baddbmm(self.b2, hidden, self.w2)
 
     def errors(
