@@ -8,6 +8,13 @@ budget are skipped and marked as such (HCI needs |O| interventions, fine-grained
 
     .venv/bin/python benchmarks/interventions.py            # |O| = 1e2 .. 1e5
     .venv/bin/python benchmarks/interventions.py --sizes 100 1000
+    .venv/bin/python benchmarks/interventions.py --sizes 1000 --draws-per-code 80
+
+By default there are just enough episodes that almost every code appears (~3 draws per code):
+most codes then occur in a few held-out episodes, too few for any test to decide them, and the
+searches keep what they cannot decide. `--draws-per-code K` generates K draws per code on
+average instead (the CI of each code then has ~K/4 held-out episodes), written to
+interventions_draws{K}.json / .png beside the default files.
 
 Records of sizes not run keep their earlier values. Writes
 benchmarks/results/interventions.json and interventions.png, and prints a table.
@@ -36,10 +43,13 @@ RESULTS = Path(__file__).parent / "results"
 EPISODE_LENGTH = 12
 
 
-def run_size(num_codes: int, hci_limit: int, fine_limit: int, z: int) -> dict:
+def run_size(
+    num_codes: int, hci_limit: int, fine_limit: int, z: int, draws_per_code: int = 3
+) -> dict:
     """All searches on one |O|; returns a JSON-ready record."""
-    # Enough episodes that (almost) every code appears: coverage ~ 1 - exp(-E (L+1) / |O|).
-    episodes = max(2000, math.ceil(3 * num_codes / (EPISODE_LENGTH + 1)))
+    # With the default 3 draws per code, (almost) every code appears: coverage
+    # ~ 1 - exp(-E (L+1) / |O|).
+    episodes = max(2000, math.ceil(draws_per_code * num_codes / (EPISODE_LENGTH + 1)))
     data = generate_planted_episodes(
         num_codes, num_causal=2, num_episodes=episodes, episode_length=EPISODE_LENGTH, seed=0
     )
@@ -52,6 +62,7 @@ def run_size(num_codes: int, hci_limit: int, fine_limit: int, z: int) -> dict:
         "num_codes": num_codes,
         "observed": estimator.data.num_codes,
         "episodes": episodes,
+        "draws_per_code": draws_per_code,
         "causal_codes": truth,
         "confounder_codes": sorted(data.confounder_codes.ravel().tolist()),
         "predictor_fit_seconds": round(fit_seconds, 2),
@@ -137,17 +148,23 @@ def main() -> None:
     parser.add_argument("--hci-limit", type=int, default=10_000, help="largest |O| for HCI")
     parser.add_argument("--fine-limit", type=int, default=1000, help="largest |O| for fine CI")
     parser.add_argument("--z", type=int, default=4)
+    parser.add_argument(
+        "--draws-per-code", type=int, default=3, help="average observations of each code"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / "interventions.json"
+    stem = (
+        "interventions" if args.draws_per_code == 3 else f"interventions_draws{args.draws_per_code}"
+    )
+    path = RESULTS / f"{stem}.json"
     # Sizes not run now keep their earlier records, so one size can be (re)run on its own.
     records = [r for r in _load(path) if r["num_codes"] not in args.sizes]
     for n in args.sizes:  # results are written after every size, so a long run keeps them
-        records.append(run_size(n, args.hci_limit, args.fine_limit, args.z))
+        records.append(run_size(n, args.hci_limit, args.fine_limit, args.z, args.draws_per_code))
         records.sort(key=lambda r: r["num_codes"])
         path.write_text(json.dumps(records, indent=2) + "\n")
-        plot(records, RESULTS / "interventions.png")
+        plot(records, RESULTS / f"{stem}.png")
     print(f"\n{'|Ô|':>7} | {'fine-grained':>16} | {'HCI':>16} | {'T-HCI':>16} | bound | exact")
     for r in records:
         cells = []
@@ -163,7 +180,7 @@ def main() -> None:
             f"{r['observed']:>7} | {cells[0]:>16} | {cells[1]:>16} | {cells[2]:>16} | "
             f"{r['bound_t_hci']:>5} | {exact}"
         )
-    print(f"written to {RESULTS / 'interventions.json'} and interventions.png")
+    print(f"written to {path} and {stem}.png")
 
 
 if __name__ == "__main__":
