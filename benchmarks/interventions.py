@@ -41,14 +41,15 @@ import matplotlib.pyplot as plt
 
 RESULTS = Path(__file__).parent / "results"
 EPISODE_LENGTH = 12
+DRAWS_PER_CODE = 3
+"""Default draws per code: just enough that (almost) every code appears."""
 
 
 def run_size(
-    num_codes: int, hci_limit: int, fine_limit: int, z: int, draws_per_code: int = 3
+    num_codes: int, hci_limit: int, fine_limit: int, z: int, draws_per_code: int = DRAWS_PER_CODE
 ) -> dict:
     """All searches on one |O|; returns a JSON-ready record."""
-    # With the default 3 draws per code, (almost) every code appears: coverage
-    # ~ 1 - exp(-E (L+1) / |O|).
+    # coverage ~ 1 - exp(-E (L+1) / |O|): ~95% of the codes appear with 3 draws per code
     episodes = max(2000, math.ceil(draws_per_code * num_codes / (EPISODE_LENGTH + 1)))
     data = generate_planted_episodes(
         num_codes, num_causal=2, num_episodes=episodes, episode_length=EPISODE_LENGTH, seed=0
@@ -149,13 +150,18 @@ def main() -> None:
     parser.add_argument("--fine-limit", type=int, default=1000, help="largest |O| for fine CI")
     parser.add_argument("--z", type=int, default=4)
     parser.add_argument(
-        "--draws-per-code", type=int, default=3, help="average observations of each code"
+        "--draws-per-code",
+        type=int,
+        default=DRAWS_PER_CODE,
+        help="average observations of each code",
     )
     args = parser.parse_args()
     torch.set_num_threads(1)
     RESULTS.mkdir(exist_ok=True)
     stem = (
-        "interventions" if args.draws_per_code == 3 else f"interventions_draws{args.draws_per_code}"
+        "interventions"
+        if args.draws_per_code == DRAWS_PER_CODE
+        else f"interventions_draws{args.draws_per_code}"
     )
     path = RESULTS / f"{stem}.json"
     # Sizes not run now keep their earlier records, so one size can be (re)run on its own.

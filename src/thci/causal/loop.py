@@ -33,7 +33,7 @@ from thci.causal.discretize import Discretizer, discretizer_from_state, make_dis
 from thci.causal.gate import Gate
 from thci.causal.predictor import EffectEstimator, PredictorConfig, PredictorState
 from thci.causal.replay import PoolArrays, PoolEpisode, ReplayPool, pad_episodes
-from thci.causal.search import DEFAULT_MIN_SUPPORT, CIResult, hci, t_hci
+from thci.causal.search import DEFAULT_MIN_SUPPORT, DEFAULT_XI, DEFAULT_Z, CIResult, hci, t_hci
 from thci.causal.synthetic import generate_planted_episodes
 from thci.config import TrainConfig
 from thci.rl.episodes import EpisodeAssembler
@@ -525,7 +525,7 @@ def _start_worker() -> Pool:
 
 def _init_worker() -> None:
     """Worker initializer; unpickling it imports this module (torch, the predictor). It then
-    warms torch up on a tiny synthetic pool: the first fit in a fresh process paid ~1.5 s of
+    warms torch up on a tiny synthetic pool: the first fit in a fresh process paid ~1-2 s of
     one-time set-up, and the RL loop waits for the first round (Maze-L3 pool: 8.6 s cold, 7.4 s
     after the warm-up)."""
     die_with_parent()
@@ -538,8 +538,8 @@ def _init_worker() -> None:
             observation_size=16,
             num_actions=4,
             method="t-hci",
-            z=4,
-            xi=0.1,
+            z=DEFAULT_Z,
+            xi=DEFAULT_XI,
             predictor=PredictorConfig(base_steps=5),
             threads=1,
         )

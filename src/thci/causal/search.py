@@ -56,6 +56,8 @@ to seven other codes beside them, 0.2 lost a cause on three). With the reward ta
 (results/xi_calibration_reward.json) 0.05 keeps exactly the labels on five early Maze L3-L4
 pools and 0.1 on four of them."""
 
+DEFAULT_Z = 4
+"""Z: parts each candidate set is split into (Prop. 3)."""
 
 DEFAULT_MIN_SUPPORT = 10
 """T-HCI splits a part that has an effect only while it occurs in at least this many held-out
@@ -213,7 +215,7 @@ class _Search:
 
 def t_hci(
     estimator: EffectEstimator,
-    z: int = 4,
+    z: int = DEFAULT_Z,
     xi: float = DEFAULT_XI,
     keep: np.ndarray | None = None,
     min_support: int = DEFAULT_MIN_SUPPORT,
