@@ -7,33 +7,50 @@ that run would run (effect predictor fit, T-HCI or HCI search, gate fit: `run_ci
 this process with one torch thread, `--repeats` times, and records the median seconds,
 |Ô|, interventions and the causal set found. A later round continues the previous round's
 predictor (`--ci-warm-steps`); `--cold` times a first round instead (`--ci-base-steps` from
-scratch).
+scratch). `--steps N` fits for N steps instead of the run's own setting (e.g. today's default
+for an older run), and `--two-cores` runs the round as the RL loop runs one it waits for: the
+fit split between this process and a worker (`run_ci_job_on_two_cores`); the seconds recorded
+are then the wall-clock of the round, the compute of both processes beside them.
 
-    .venv/bin/python benchmarks/ci_rounds.py RUN_DIR [RUN_DIR ...] [--cold]
+    .venv/bin/python benchmarks/ci_rounds.py RUN_DIR [RUN_DIR ...] [--cold] [--steps N]
+        [--two-cores]
 
-Writes benchmarks/results/ci_rounds.json and prints a table.
+Writes benchmarks/results/ci_rounds[_cold][_two_cores].json and prints a table.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import statistics
+import time
+from multiprocessing.pool import Pool
 from pathlib import Path
 
 import torch
 from saved_ci import load_ci_loop
 
-from thci.causal.loop import run_ci_job
+from thci.causal.loop import run_ci_job, run_ci_job_on_two_cores, start_ci_worker
 
 RESULTS = Path(__file__).parent / "results"
 
 
-def time_round(run_dir: Path, repeats: int, cold: bool) -> dict:
+def time_round(
+    run_dir: Path, repeats: int, cold: bool, steps: int | None, workers: Pool | None
+) -> dict:
     """Median seconds of the run's CI round on the pool of its last checkpoint."""
     config, loop = load_ci_loop(run_dir, cold)
+    if steps is not None:
+        loop.config = dataclasses.replace(loop.config, ci_base_steps=steps, ci_warm_steps=steps)
     job = loop.make_job(loop.pool.arrays())
-    outcomes = [run_ci_job(job) for _ in range(repeats)]
+    outcomes, walls = [], []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        outcomes.append(
+            run_ci_job(job) if workers is None else run_ci_job_on_two_cores(job, workers)
+        )
+        walls.append(time.perf_counter() - started)
     result = outcomes[-1].result
     return {
         "run": str(run_dir),
@@ -44,8 +61,13 @@ def time_round(run_dir: Path, repeats: int, cold: bool) -> dict:
         "observed": len(result.observed),
         "interventions": result.num_interventions,
         "kept": loop.describe(result.causal),
-        "seconds_median": round(statistics.median(o.seconds for o in outcomes), 3),
-        "seconds_all": [round(o.seconds, 3) for o in outcomes],
+        "fit_steps": job.predictor.base_steps
+        if job.warm_start is None
+        else job.predictor.warm_steps,
+        "two_cores": workers is not None,
+        "seconds_median": round(statistics.median(walls), 3),
+        "seconds_all": [round(w, 3) for w in walls],
+        "compute_seconds_all": [round(o.seconds, 3) for o in outcomes],
     }
 
 
@@ -54,11 +76,15 @@ def main() -> None:
     parser.add_argument("run_dirs", nargs="+", type=Path)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--cold", action="store_true", help="time a first round")
+    parser.add_argument("--steps", type=int, default=None, help="fit steps (default: the run's)")
+    parser.add_argument("--two-cores", action="store_true", help="split the fit with a worker")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    rows = [time_round(d, args.repeats, args.cold) for d in args.run_dirs]
+    workers = start_ci_worker() if args.two_cores else None
+    rows = [time_round(d, args.repeats, args.cold, args.steps, workers) for d in args.run_dirs]
     RESULTS.mkdir(exist_ok=True)
-    name = "ci_rounds_cold.json" if args.cold else "ci_rounds.json"
+    name = "ci_rounds" + ("_cold" if args.cold else "") + ("_two_cores" if args.two_cores else "")
+    name += ".json"
     (RESULTS / name).write_text(json.dumps(rows, indent=2) + "\n")
     print("| run | round | |Ô| | interventions | kept | seconds (median) |")
     print("|---|---|---|---|---|---|")

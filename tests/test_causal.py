@@ -9,7 +9,15 @@ import pytest
 import torch
 
 from thci.causal.gate import Gate
-from thci.causal.loop import CausalInferenceLoop, CIOutcome, _Computed, _PendingRound
+from thci.causal.loop import (
+    CausalInferenceLoop,
+    CIJob,
+    CIOutcome,
+    _Computed,
+    _PendingRound,
+    fit_ci_part,
+    run_ci_job,
+)
 from thci.causal.predictor import (
     BatchedPredictor,
     CodeData,
@@ -521,23 +529,52 @@ def test_reward_target_drops_what_only_decides_where_the_agent_goes():
     assert not (kept["dynamics"] | kept["reward"]) & {7, 8, 9}
 
 
-def test_ci_rounds_go_on_until_the_gate_keeps_only_confirmed_observations():
+def test_ci_rounds_stop_once_two_in_a_row_agree_also_with_undecided_observations():
     config = TrainConfig(method="t-hci", ci_min_episodes=0, ci_min_rewarded_episodes=0)
     loop = CausalInferenceLoop(config, gym.spaces.Box(0, 1, (3,)), 2, 1, Gate(3))
     job = SimpleNamespace(pool=SimpleNamespace(lengths=np.ones(5)))
     observed = np.arange(3)
 
-    def apply_round(confirmed: list[int]) -> None:
-        # every round keeps codes 0 and 1 (eliminates 2); `confirmed` of them for sure
-        result = CIResult("t-hci", observed, np.array([2]), np.array([0, 1]), np.array(confirmed))
+    def apply_round(kept: list[int], confirmed: list[int]) -> None:
+        eliminated = np.setdiff1d(observed, kept)
+        result = CIResult("t-hci", observed, eliminated, np.array(kept), np.array(confirmed))
         outcome = CIOutcome(result, Gate(3).state_dict(), 1.0, 0.1, None)
         loop.pending = _PendingRound(job, 0, 0, _Computed(outcome))
         loop.step(0)
 
-    apply_round([0])
-    assert not loop.settled()  # one round: a second must agree
-    apply_round([])  # two rounds agree, but code 1 is kept only because none could decide
-    assert loop.undecided() == [1] and loop.due(config.ci_every) and not loop.settled()
-    apply_round([1])
-    assert loop.undecided() == [] and not loop.due(config.ci_every)
-    assert loop.settled()  # what --stop-on-solve waits for
+    apply_round([0, 1], [0])
+    assert not loop.settled() and loop.due(config.ci_every)  # one round: a second must agree
+    apply_round([0], [0])  # disagrees
+    assert not loop.settled()
+    # agrees: settled, though no round confirmed code 1 (a later pool, from a policy acting on
+    # its memory, would hide its effect rather than reveal it)
+    apply_round([0, 1], [])
+    apply_round([0, 1], [])
+    assert loop.settled() and not loop.due(config.ci_every)  # what --stop-on-solve waits for
+
+
+def test_a_round_fitted_in_two_parts_finds_exactly_what_one_fit_finds():
+    # the RL loop fits half the ensemble while the worker fits the other half
+    data = generate_planted_episodes(12, num_causal=1, num_episodes=300, seed=4)
+    job = CIJob(
+        pool=pad_episodes(data.episodes),
+        observations={code: np.eye(12, dtype=np.float32)[code] for code in range(12)},
+        gate_state=Gate(12).state_dict(),
+        observation_size=12,
+        num_actions=4,
+        method="t-hci",
+        z=4,
+        xi=0.1,
+        predictor=PredictorConfig(base_steps=30),
+        threads=1,
+    )
+    whole = run_ci_job(job)
+    parts = run_ci_job(job, [fit_ci_part(job, [0, 1]), fit_ci_part(job, [2, 3])])
+    assert [r.ate for r in parts.result.interventions] == [
+        r.ate for r in whole.result.interventions
+    ]
+    assert np.array_equal(parts.result.eliminated, whole.result.eliminated)
+    for name, value in whole.predictor.parameters.items():
+        assert torch.equal(parts.predictor.parameters[name], value), name
+    # a part is those members alone, not a copy of the others
+    assert not torch.equal(whole.predictor.parameters["w1"][0], whole.predictor.parameters["w1"][2])

@@ -252,6 +252,15 @@ def test_t_hci_run_reports_ci_and_resumes_to_the_same_result(tmp_path):
     assert without_timing(in_process) == without_timing(reference)
     assert in_process["ci_blocking_s"] >= in_process["ci_wall_clock_s"] * 0.9
 
+    # A round the RL loop waits for is fitted on both cores (half of the ensemble in the
+    # worker): the same result as one process fitting it all.
+    blocking = list(T_HCI_FAST)
+    blocking[blocking.index("--ci-first-lag") + 1] = "0"
+    two_cores = train(tmp_path, "two-cores", "--total-steps", "2048", *blocking)
+    one_core = train(tmp_path, "one-core", "--total-steps", "2048", "--no-ci-async", *blocking)
+    assert two_cores["ci_rounds"] >= 1 and two_cores["ci_blocking_s"] > 0
+    assert without_timing(two_cores) == without_timing(one_core)
+
 
 @pytest.mark.parametrize("algo", ["a2c", "dmc"])
 def test_a2c_and_dmc_train_the_causal_memory_and_resume_to_the_same_result(tmp_path, algo):

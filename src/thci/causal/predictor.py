@@ -332,13 +332,18 @@ class BatchedPredictor(nn.Module):
                 self.b2[..., new_rows] = old["b2"][..., old_rows]
 
     def replicate(
-        self, copies: int, member: int | None = None, shared: bool = False
+        self,
+        copies: int,
+        member: int | None = None,
+        shared: bool = False,
+        members: list[int] | None = None,
     ) -> BatchedPredictor:
         """A (M·copies)-model predictor: `copies` consecutive copies of each of the M models;
-        with `member`, `copies` copies of that model alone. `shared` (needs `member`): the
-        copies are views of that model's parameters, for evaluation only. Copying the
-        embeddings of every arm cost more than the evaluation itself on large Ô (App. J with
-        10^5 codes: 17 arms x 2 x 10^5 x 16 floats per fold and pass)."""
+        with `member`, `copies` copies of that model alone (with `members`, of those models).
+        `shared` (needs `member`): the copies are views of that model's parameters, for
+        evaluation only. Copying the embeddings of every arm cost more than the evaluation
+        itself on large Ô (App. J with 10^5 codes: 17 arms x 2 x 10^5 x 16 floats per fold
+        and pass)."""
         if shared and member is None:
             raise ValueError("shared replicas are views of one member: pass member")
         clone = BatchedPredictor.__new__(BatchedPredictor)
@@ -346,7 +351,9 @@ class BatchedPredictor(nn.Module):
         clone.target, clone.num_actions = self.target, self.num_actions
         clone.num_logits = self.num_logits
         clone.register_buffer("logit_offset", self.logit_offset)
-        chosen = slice(None) if member is None else slice(member, member + 1)
+        chosen: slice | list[int] = slice(None) if member is None else slice(member, member + 1)
+        if members is not None:
+            chosen = members
         for name in ("embed", "mask_embed", "step_embed", "w1", "b1", "w2", "b2"):
             value = getattr(self, name).detach()[chosen]
             if shared:
@@ -355,6 +362,10 @@ class BatchedPredictor(nn.Module):
                 value = value.repeat_interleave(copies, dim=0)
             setattr(clone, name, nn.Parameter(value, requires_grad=not shared))
         return clone
+
+    def select(self, members: list[int]) -> BatchedPredictor:
+        """A predictor of models `members` alone (their parameters copied), for a split fit."""
+        return self.replicate(1, members=members)
 
     def forward(
         self,
@@ -493,6 +504,24 @@ class BatchedPredictor(nn.Module):
         return (1 - torch.exp(-nll)).unsqueeze(0), nll, valid
 
 
+def fit_members(
+    pool: PoolArrays,
+    num_actions: int,
+    config: PredictorConfig,
+    members: list[int],
+    warm_start: PredictorState | None = None,
+) -> dict[str, torch.Tensor]:
+    """The parameters (leading dimension len(members)) that fitting the whole ensemble gives
+    members `members`: one part of a split fit (:class:`EffectEstimator`)."""
+    estimator = EffectEstimator(pool, num_actions, config, warm_start, members=members)
+    return {name: p.detach() for name, p in estimator.base.named_parameters()}
+
+
+def join_members(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """The parameters of the whole ensemble from its parts, in member order."""
+    return {name: torch.cat([part[name] for part in parts]) for name in parts[0]}
+
+
 def _replicate_state(state: dict[str, Any], copies: int, member: int) -> dict[str, Any]:
     """The Adam state_dict of a BatchedPredictor for its
     :meth:`BatchedPredictor.replicate` (`copies`, `member`)."""
@@ -546,6 +575,14 @@ class EffectEstimator:
         config: predictor settings.
         warm_start: an earlier round's predictor to continue (`config.warm_steps` Adam steps
             instead of `config.base_steps` from scratch).
+        members: fit only these ensemble members (one part of a split fit, see
+            :func:`fit_members`); the estimator then answers no ATEs.
+        fitted: every member's fitted parameters (the parts of a split fit joined): skips the
+            fit. Not with per-intervention fine-tuning, which continues the fit's Adam state.
+
+    The members are independent (their own initialization, random interventions and held-out
+    fold; only the minibatch order is shared), so a fit of some members gives them exactly the
+    parameters the whole ensemble's fit does, and two processes can fit half each.
     """
 
     def __init__(
@@ -554,7 +591,11 @@ class EffectEstimator:
         num_actions: int,
         config: PredictorConfig,
         warm_start: PredictorState | None = None,
+        members: list[int] | None = None,
+        fitted: dict[str, torch.Tensor] | None = None,
     ) -> None:
+        if fitted is not None and config.finetune_steps > 0:
+            raise ValueError("fine-tuning continues the fit's Adam state: fit in one piece")
         self.config = config
         self.data = CodeData(pool, config, num_actions)
         torch.manual_seed(config.seed)
@@ -575,8 +616,18 @@ class EffectEstimator:
                 warm_start, self.data.observed, classes_are_codes=largest <= config.max_classes
             )
             steps = config.warm_steps
-        members = torch.arange(config.ensemble)
-        self._base_optimizer = self._fit(self.base, members, self._random_code_dropout, steps)
+        self._base_optimizer: torch.optim.Adam | None = None
+        if fitted is not None:
+            with torch.no_grad():
+                for name, parameter in self.base.named_parameters():
+                    parameter.copy_(fitted[name])
+            return
+        masks = self._random_code_dropout
+        if members is not None:
+            self.base = self.base.select(list(members))
+            masks = self._dropout_of(list(members))
+        fitted_members = torch.arange(config.ensemble) if members is None else torch.tensor(members)
+        self._base_optimizer = self._fit(self.base, fitted_members, masks, steps)
 
     def support(self, codes: np.ndarray) -> int:
         """Held-out episodes whose history (before their last transition) holds any of
@@ -597,6 +648,10 @@ class EffectEstimator:
         """The fitted base predictor, to warm-start the next round."""
         return self.base.state(self.data.observed)
 
+    def _optimizer(self) -> torch.optim.Adam:
+        assert self._base_optimizer is not None, "fitted elsewhere: no Adam state to continue"
+        return self._base_optimizer
+
     def _random_code_dropout(self, episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Random interventions: whole codes removed from each episode's history at a rate
         drawn per episode uniformly from [0, 1]. Returns the masked positions (M, B, L+1) and
@@ -613,6 +668,16 @@ class EffectEstimator:
         masked_codes = torch.rand(*shape, self.data.num_codes, generator=generator) < rate
         ids = self.data.ids[episodes].expand(members, -1, -1)
         return masked_codes.gather(2, ids), masked_codes
+
+    def _dropout_of(self, members: list[int]):
+        """:meth:`_random_code_dropout` for some members: drawn for all of them and sliced, so
+        each member's draws are those of the whole ensemble's fit."""
+
+        def draw(episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            masked, masked_codes = self._random_code_dropout(episodes)
+            return masked[members], masked_codes[members]
+
+        return draw
 
     def _fit(
         self,
@@ -764,7 +829,7 @@ class EffectEstimator:
                 torch.full((arms,), member),
                 lambda batch: masks(batch)[:2],
                 self.config.finetune_steps,
-                _replicate_state(self._base_optimizer.state_dict(), arms, member),
+                _replicate_state(self._optimizer().state_dict(), arms, member),
             )
         with torch.no_grad():
             errors = model.errors(

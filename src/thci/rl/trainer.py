@@ -306,23 +306,31 @@ def _train(
             bar.set_postfix(success=f"{tracker.success_rate:.2f}", ret=f"{tracker.mean_reward:.2f}")
             if update % config.checkpoint_every == 0:
                 save_checkpoint()
-    except KeyboardInterrupt:
-        raise ThciError(
-            f"interrupted; continue with: thci train --resume --run-dir {run.path} "
-            "(and the same settings)"
-        ) from None
+    except BaseException as exc:
+        if ci is not None:
+            ci.close()
+        if isinstance(exc, KeyboardInterrupt):
+            raise ThciError(
+                f"interrupted; continue with: thci train --resume --run-dir {run.path} "
+                "(and the same settings)"
+            ) from None
+        raise
     finally:
         bar.close()
         writer.close()
+    try:
+        save_checkpoint()
+        wall_clock = wall_clock_before + time.perf_counter() - started
+        # Measurements of the trained run, not part of its wall-clock (like TAIE below); the
+        # final CI round still has the CI worker for half of its fit.
+        final_ci, final_ci_seconds = (
+            _final_inference(agent, ci, config)
+            if ci is not None and config.ci_final
+            else (None, None)
+        )
+    finally:
         if ci is not None:
             ci.close()
-    save_checkpoint()
-
-    wall_clock = wall_clock_before + time.perf_counter() - started
-    # Measurements of the trained run, not part of its wall-clock (like TAIE below).
-    final_ci, final_ci_seconds = (
-        _final_inference(agent, ci, config) if ci is not None and config.ci_final else (None, None)
-    )
     summary = {
         "env_id": config.env,
         "method": config.method,
