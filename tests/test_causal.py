@@ -11,11 +11,11 @@ import torch
 from thci.causal.gate import Gate
 from thci.causal.loop import (
     CausalInferenceLoop,
-    CIJob,
     CIOutcome,
     _Computed,
     _PendingRound,
     fit_ci_part,
+    planted_ci_job,
     run_ci_job,
 )
 from thci.causal.predictor import (
@@ -555,19 +555,7 @@ def test_ci_rounds_stop_once_two_in_a_row_agree_also_with_undecided_observations
 
 def test_a_round_fitted_in_two_parts_finds_exactly_what_one_fit_finds():
     # the RL loop fits half the ensemble while the worker fits the other half
-    data = generate_planted_episodes(12, num_causal=1, num_episodes=300, seed=4)
-    job = CIJob(
-        pool=pad_episodes(data.episodes),
-        observations={code: np.eye(12, dtype=np.float32)[code] for code in range(12)},
-        gate_state=Gate(12).state_dict(),
-        observation_size=12,
-        num_actions=4,
-        method="t-hci",
-        z=4,
-        xi=0.1,
-        predictor=PredictorConfig(base_steps=30),
-        threads=1,
-    )
+    job = planted_ci_job(12, num_episodes=300, episode_length=12, base_steps=30, seed=4)
     whole = run_ci_job(job)
     parts = run_ci_job(job, [fit_ci_part(job, [0, 1]), fit_ci_part(job, [2, 3])])
     assert [r.ate for r in parts.result.interventions] == [

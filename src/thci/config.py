@@ -177,8 +177,8 @@ class TrainConfig:
     ci_base_steps: int = 1000
     """Adam steps of the effect predictor in the first round (fitted once per round, answers
     every intervention). An underfitted predictor reads effects into corridor codes: on eleven
-    first-round Maze L1-L3 pools, 400 steps kept extra codes on five (three of them confirmed,
-    i.e. kept for good), 1000 steps kept exactly the labels on ten and one extra code,
+    first-round Maze L1-L3 pools, 400 steps kept extra codes on five (confirmed, i.e. kept for
+    good, on at least two), 1000 steps kept exactly the labels on ten and one extra code,
     undecided, on the eleventh."""
     ci_warm_steps: int = 1000
     """Adam steps of the effect predictor in later rounds, which continue the previous round's

@@ -322,12 +322,13 @@ class CausalInferenceLoop:
         return self.pending is None and not self._more_rounds()
 
     def _more_rounds(self) -> bool:
-        """Rounds go on until two in a row agree, or until ``ci_max_rounds``; also when what
-        they keep is not all confirmed. Going on until it was let later pools decide: on Maze L4
-        (seed 2, 1000-step fits) two rounds kept the labels {0, 1, 2}, the complementary
+        """Rounds go on until two in a row agree, or until ``ci_max_rounds``, even if some code
+        they keep was never confirmed. Going on until every kept code was confirmed left the
+        decision to later pools, which come from a policy that acts on the memory: on Maze L4
+        (seed 2, 1000-step fits) two rounds kept the labels {0, 1, 2} with the complementary
         indicators 0 and 1 undecided (each is redundant given the other, so neither shows an
-        effect alone), and the fourth round, on the pool of a policy that acts on them, found
-        the pair's effect 0.06 [0.04, 0.08] and eliminated both: success 0.56 at 1M steps."""
+        effect alone), and the fourth round found the pair's effect 0.06 [0.04, 0.08] and
+        eliminated both: success 0.56 at 1M steps."""
         return len(self.rounds) < self.config.ci_max_rounds and self.stable_rounds < 2
 
     def make_job(self, pool: PoolArrays) -> CIJob:
@@ -588,20 +589,28 @@ def _init_worker() -> None:
     one-time set-up, and the RL loop waits for the first round (Maze-L3 pool: 8.6 s cold, 7.4 s
     after the warm-up)."""
     die_with_parent()
-    data = generate_planted_episodes(16, num_episodes=64, episode_length=8)
-    run_ci_job(
-        CIJob(
-            pool=pad_episodes(data.episodes),
-            observations={code: np.eye(16, dtype=np.float32)[code] for code in range(16)},
-            gate_state=Gate(16).state_dict(),
-            observation_size=16,
-            num_actions=4,
-            method="t-hci",
-            z=DEFAULT_Z,
-            xi=DEFAULT_XI,
-            predictor=PredictorConfig(base_steps=5),
-            threads=1,
-        )
+    run_ci_job(planted_ci_job(16, num_episodes=64, episode_length=8, base_steps=5))
+
+
+def planted_ci_job(
+    num_codes: int, num_episodes: int, episode_length: int, base_steps: int, seed: int = 0
+) -> CIJob:
+    """A T-HCI round's job on synthetic episodes with planted causes (one-hot observations,
+    :func:`~thci.causal.synthetic.generate_planted_episodes`), with the search's defaults."""
+    data = generate_planted_episodes(
+        num_codes, num_episodes=num_episodes, episode_length=episode_length, seed=seed
+    )
+    return CIJob(
+        pool=pad_episodes(data.episodes),
+        observations={c: np.eye(num_codes, dtype=np.float32)[c] for c in range(num_codes)},
+        gate_state=Gate(num_codes).state_dict(),
+        observation_size=num_codes,
+        num_actions=4,
+        method="t-hci",
+        z=DEFAULT_Z,
+        xi=DEFAULT_XI,
+        predictor=PredictorConfig(base_steps=base_steps),
+        threads=1,
     )
 
 

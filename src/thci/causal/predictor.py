@@ -609,6 +609,12 @@ class EffectEstimator:
             config,
             max_steps=self.data.actions.shape[1],
         )
+        self._base_optimizer: torch.optim.Adam | None = None
+        if fitted is not None:
+            with torch.no_grad():
+                for name, parameter in self.base.named_parameters():
+                    parameter.copy_(fitted[name])
+            return
         steps = config.base_steps
         if warm_start is not None:
             largest = max(self.data.num_codes, len(warm_start.observed))
@@ -616,12 +622,6 @@ class EffectEstimator:
                 warm_start, self.data.observed, classes_are_codes=largest <= config.max_classes
             )
             steps = config.warm_steps
-        self._base_optimizer: torch.optim.Adam | None = None
-        if fitted is not None:
-            with torch.no_grad():
-                for name, parameter in self.base.named_parameters():
-                    parameter.copy_(fitted[name])
-            return
         masks = self._random_code_dropout
         if members is not None:
             self.base = self.base.select(list(members))
