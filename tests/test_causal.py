@@ -95,10 +95,13 @@ def test_masking_removes_exactly_the_intervened_history_and_never_the_current_ob
     )
 
 
-@pytest.mark.parametrize("target", ["reward", "dynamics"])
-def test_predictor_reads_the_running_max_of_the_kept_history_before_each_step(target):
+@pytest.mark.parametrize("target", ["reward", "dynamics", "inverse"])
+@pytest.mark.parametrize("per_episode", [False, True])
+def test_predictor_reads_the_running_max_of_the_kept_history_before_each_step(target, per_episode):
     """Each transition t's history input is the elementwise max of the embeddings of the kept
-    o_1 … o_{t-1} (zero when none is kept): checked against a step-by-step reference."""
+    o_1 … o_{t-1} (zero when none is kept), and the first layer sees [history, o_t, a_t or
+    o_{t+1} as the target needs, t, intervened set] in w1's row order: checked against a
+    step-by-step reference, with one intervened set per arm or one per episode."""
     torch.manual_seed(0)
     config = PredictorConfig(target=target, embed_dim=4, hidden_size=8)
     model = BatchedPredictor(
@@ -111,7 +114,7 @@ def test_predictor_reads_the_running_max_of_the_kept_history_before_each_step(ta
     actions = torch.tensor([[0, 1, 2, 0, 1], [2, 2, 0, 0, 0]])
     valid = torch.tensor([[True] * 5, [True, True, False, False, False]])
     masked = torch.rand(2, 2, 6) < 0.4  # per member, different positions removed
-    masked_codes = torch.zeros(2, 1, 6, dtype=torch.bool)
+    masked_codes = torch.rand(2, 2 if per_episode else 1, 6) < 0.5
     out = model(ids, masked, masked_codes, actions, valid)  # (K, n, out)
     d, num_actions = 4, 3
     for k in range(2):
@@ -119,10 +122,13 @@ def test_predictor_reads_the_running_max_of_the_kept_history_before_each_step(ta
             kept = [model.embed[k, ids[b, j]] for j in range(t) if not masked[k, b, j]]
             history = torch.stack(kept).max(dim=0).values if kept else torch.zeros(d)
             action = torch.nn.functional.one_hot(actions[b, t], num_actions).float()
-            parts = [history, model.embed[k, ids[b, t]], action]
-            if target == "reward":
-                parts.append(model.embed[k, ids[b, t + 1]])
-            parts += [model.step_embed[k, t], torch.zeros(d)]  # nothing intervened
+            following = model.embed[k, ids[b, t + 1]]
+            parts = [history, model.embed[k, ids[b, t]]]
+            parts += {"dynamics": [action], "reward": [action, following], "inverse": [following]}[
+                target
+            ]
+            intervened = masked_codes[k, b if per_episode else 0].float() @ model.mask_embed[k]
+            parts += [model.step_embed[k, t], intervened]
             hidden = torch.relu(torch.cat(parts) @ model.w1[k] + model.b1[k, 0])
             expected = hidden @ model.w2[k] + model.b2[k, 0]
             assert torch.allclose(out[k, row], expected, atol=1e-5), (k, b, t)

@@ -186,8 +186,8 @@ def run_ci_job(job: CIJob, parts: list[FittedPart] | None = None) -> CIOutcome:
 def run_ci_job_on_two_cores(job: CIJob, workers: Pool) -> CIOutcome:
     """:func:`run_ci_job` with its fit split: a worker fits half of the ensemble's members,
     this process the other half (the same predictor as one process fitting all), then the
-    search runs here. For a round the RL loop waits for, whose core is idle meanwhile. Maze L1
-    and L3 first-round pools, 1000 steps: 18-22 s in one process, 11-13 s in two. A single
+    search runs here. For a round the RL loop waits for, whose core is idle meanwhile. Maze
+    L1-L3 first-round pools, 1000 steps: 10-14 s in one process, 7.4-9.3 s in two. A single
     predictor, or one fine-tuned per intervention (which continues the fit's Adam state), is
     fitted in one piece."""
     members = job.predictor.ensemble
