@@ -559,6 +559,21 @@ def test_ci_rounds_stop_once_two_in_a_row_agree_also_with_undecided_observations
     assert loop.settled() and not loop.due(config.ci_every)  # what --stop-on-solve waits for
 
 
+def test_no_ci_round_starts_once_the_run_has_solved_but_one_in_flight_still_applies():
+    config = TrainConfig(method="t-hci", ci_min_episodes=0, ci_min_rewarded_episodes=0)
+    loop = CausalInferenceLoop(config, gym.spaces.Box(0, 1, (3,)), 2, 1, Gate(3))
+    assert loop.due(0) and not loop.due(0, solved=True)
+    observed = np.arange(3)
+    result = CIResult("t-hci", observed, np.array([2]), np.array([0, 1]), np.array([0]))
+    outcome = CIOutcome(result, Gate(3).state_dict(), 1.0, 0.1, None)
+    job = SimpleNamespace(pool=SimpleNamespace(lengths=np.ones(5)))
+    loop.pending = _PendingRound(job, 0, 100, _Computed(outcome))  # started before the solve
+    assert not loop.settled(solved=True)  # --stop-on-solve waits for it
+    assert loop.step(50, solved=True) is None  # not yet its step
+    assert loop.step(100, solved=True) is not None and loop.pending is None  # applied
+    assert loop.settled(solved=True) and not loop.settled()  # unsolved, a second must agree
+
+
 def test_a_round_fitted_in_two_parts_finds_exactly_what_one_fit_finds():
     # the RL loop fits half the ensemble while the worker fits the other half
     job = planted_ci_job(12, num_episodes=300, episode_length=12, base_steps=30, seed=4)

@@ -116,14 +116,15 @@ class TrainConfig:
     # Counterfactual inference (methods t-hci and hci)
     ci_every: int = 8192
     """Env steps between CI rounds (the first runs once ci_min_episodes episodes are pooled)."""
-    ci_lag: int = 32768
+    ci_lag: int = 65536
     """Env steps from a round's start (on the pool as it was) to the update at which its gate
     takes effect; the RL loop waits only if the round has not finished by then, and the next
-    round starts then. A round overlaps with the next ci_lag steps of training (Fig. 3). With
-    8192 the RL loop waited for almost every round (Maze L3-L4, 5 seeds each: 10-28 s per run,
-    6-30% of its wall-clock); with 32768 it waited 2.6-5.9 s per run (2-13%; with the presets'
-    later exploration settings 3.0-12.3 s, 1.7-16%), mostly in the first round, which also
-    starts the worker process (measured when the first round used ci_lag too)."""
+    round starts then. A round overlaps with the next ci_lag steps of training (Fig. 3). A
+    later round (1000 warm-start steps, 11-15 s in the worker beside training) outlasted 32768
+    steps (~6 s of Maze training), and the RL loop waited ~6 s for each; with 65536 it waits
+    for the first round alone (Maze L3-L4, seeds 1-5, commit cb73f35: mean wall-clock to solve
+    72.7 s against 90.2 s on L3 and 41.5 s against 45.8 s on L4; mean steps 321k against 375k
+    and 169k against 162k: the gates take effect later, which changes the runs)."""
     ci_first_lag: int = 0
     """ci_lag of the first round; 0: the RL loop waits for it (one round, a few seconds). Before
     the first gate the causal memory is empty (ci_initial_memory), so the policy is memoryless

@@ -250,9 +250,9 @@ def _train(
         )
 
     try:
-        # A causal method's run also waits for CI to settle, so that its gate is final.
+        # A causal method's run also waits for a round in flight, so that its gate is final.
         while update < num_updates and not (
-            config.stop_on_solve and tracker.solved and (ci is None or ci.settled())
+            config.stop_on_solve and tracker.solved and (ci is None or ci.settled(solved=True))
         ):
             if config.anneal_lr:
                 for group in optimizer.param_groups:
@@ -271,7 +271,7 @@ def _train(
             update += 1
             if ci is not None:  # the CI loop runs on the pool between RL updates (Fig. 3)
                 ci.observe(rollout)
-                record = ci.step(global_step)
+                record = ci.step(global_step, solved=tracker.solved)
                 if record is not None:
                     write_ci_rounds(run, ci)
                     for key in ("interventions", "observed", "causal", "seconds"):
