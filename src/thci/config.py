@@ -121,10 +121,10 @@ class TrainConfig:
     takes effect; the RL loop waits only if the round has not finished by then, and the next
     round starts then. A round overlaps with the next ci_lag steps of training (Fig. 3). A
     later round (1000 warm-start steps, 11-15 s in the worker beside training) outlasted 32768
-    steps (~6 s of Maze training), and the RL loop waited ~6 s for each; with 65536 it waits
-    for the first round alone (Maze L3-L4, seeds 1-5, commit cb73f35: mean wall-clock to solve
+    steps (~6 s of Maze training), and the RL loop waited ~6 s for each; with 65536 it waited
+    0-3.3 s for each (Maze L1-L4, seeds 1-5). Maze L3-L4, commit cb73f35: mean wall-clock to solve
     72.7 s against 90.2 s on L3 and 41.5 s against 45.8 s on L4; mean steps 321k against 375k
-    and 169k against 162k: the gates take effect later, which changes the runs)."""
+    and 169k against 162k: the gates take effect later, which changes the runs."""
     ci_first_lag: int = 0
     """ci_lag of the first round; 0: the RL loop waits for it (one round, a few seconds). Before
     the first gate the causal memory is empty (ci_initial_memory), so the policy is memoryless
