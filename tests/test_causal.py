@@ -35,6 +35,7 @@ from thci.envs.paper_maze import load_maze_level
 from thci.experiments.demo import confounding_demo, door_deciders_kept
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
+from thci.rl.trainer import _final_inference
 
 torch.set_num_threads(1)
 
@@ -572,6 +573,15 @@ def test_no_ci_round_starts_once_the_run_has_solved_but_one_in_flight_still_appl
     assert loop.step(50, solved=True) is None  # not yet its step
     assert loop.step(100, solved=True) is not None and loop.pending is None  # applied
     assert loop.settled(solved=True) and not loop.settled()  # unsolved, a second must agree
+
+
+def test_a_run_that_solved_runs_no_final_ci_round():
+    class FinishedLoop:  # its final round must not be asked for
+        def final_inference(self):
+            raise AssertionError("a solved run ran a final CI round")
+
+    config = TrainConfig(method="t-hci")
+    assert _final_inference(None, FinishedLoop(), config, solved=True) == (None, None)
 
 
 def test_a_round_fitted_in_two_parts_finds_exactly_what_one_fit_finds():

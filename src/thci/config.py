@@ -194,7 +194,8 @@ class TrainConfig:
     """After training, run one more CI round on the final pool and report what it infers
     (summary's ``final_ci``: causal set, interventions, seconds, TAIE of its gate on the trained
     policy's greedy trajectories). It is not applied to the policy. It tells what CI concludes
-    from all the data, also for a run that solved before its first gate took effect."""
+    from all the data of a run that did not solve; a run that solved skips it (a solving
+    policy's pool shows no effect of what it remembers)."""
     ci_threads: int = 1
     """torch threads during CI rounds. 2 is ~1.3x faster on two cores, but multi-threaded
     reductions make CI results differ between processes in the last bits, which can flip a

@@ -324,7 +324,7 @@ def _train(
         # Measurements of the trained run, not part of its wall-clock (like TAIE below); the
         # final CI round still has the CI worker for half of its fit.
         final_ci, final_ci_seconds = (
-            _final_inference(agent, ci, config)
+            _final_inference(agent, ci, config, tracker.solved)
             if ci is not None and config.ci_final
             else (None, None)
         )
@@ -369,11 +369,19 @@ def _taie(
 
 
 def _final_inference(
-    agent: ActorCritic, ci: CausalInferenceLoop, config: TrainConfig
+    agent: ActorCritic, ci: CausalInferenceLoop, config: TrainConfig, solved: bool
 ) -> tuple[dict[str, Any] | None, float | None]:
     """summary.json's ``final_ci`` (a CI round on the final pool, not applied to the policy,
     with the TAIE of its gate on the trained policy's trajectories) and its seconds; None, None
-    when the pool is too small for a round."""
+    when the pool is too small for a round, or when the run `solved`: its pool then comes from
+    a policy that acts on its memory, where causes show no effect (no round starts during
+    training either, see CausalInferenceLoop.due; the quick start's final round kept [] there,
+    TAIE 0.11, beside the gate [0, 1] the policy solved with)."""
+    if solved:
+        tqdm.write(
+            "no final CI round: the run solved, and a solving policy's pool shows no effects"
+        )
+        return None, None
     tqdm.write("final CI round on the whole pool (--no-ci-final skips it)")
     final = ci.final_inference()
     if final is None:
