@@ -419,8 +419,9 @@ class BatchedPredictor(nn.Module):
         # or nothing kept) is the zero vector.
         history = seen[:, :, rows, (cols - 1).clamp(min=0)].transpose(1, 2)  # (K, n, d)
         history = history.masked_fill((cols == 0).view(1, -1, 1) | torch.isinf(history), 0.0)
-        others = self._table_inputs(ids, rows, cols, actions, masked_codes)  # (K, n, h)
-        hidden = torch.relu(torch.baddbmm(others, history, self._w1["history"]))
+        weights = self._w1
+        others = self._table_inputs(weights, ids, rows, cols, actions, masked_codes)  # (K, n, h)
+        hidden = torch.relu(torch.baddbmm(others, history, weights["history"]))
         if self.w2.shape[-1] == 1:
             # the reward target's single output: a batched matrix-vector product through bmm
             # cost ~7x this product-sum (forward and backward, 4 x 2048 x 64 on one thread)
@@ -434,13 +435,15 @@ class BatchedPredictor(nn.Module):
 
     def _table_inputs(
         self,
+        weights: dict[str, torch.Tensor],
         ids: torch.Tensor,
         rows: torch.Tensor,
         cols: torch.Tensor,
         actions: torch.Tensor,
         masked_codes: torch.Tensor,
     ) -> torch.Tensor:
-        """b1 + the first layer applied to every input but the history, (K, n, h).
+        """b1 + the first layer (`weights`, :attr:`_w1`) applied to every input but the
+        history, (K, n, h).
 
         The first layer is linear, W1·[history, o_t, …] = W_history·history + Σ_i W_i·input_i,
         and every input but the history is a row of a small table: the embeddings of the codes
@@ -450,7 +453,6 @@ class BatchedPredictor(nn.Module):
         fitting step; with this and F.embedding for the history, a first-round CI job on
         eleven Maze pools (1000 steps, one thread) took 13.0-16.4 s instead of 16.5-19.7 s.
         """
-        weights = self._w1
         steps = actions.shape[1]
         # o_t (current) and o_{t+1} (following) are never masked; only the codes of this batch
         # are projected, which keeps the cost bounded on pools of thousands of codes.
