@@ -96,13 +96,77 @@ def test_masking_removes_exactly_the_intervened_history_and_never_the_current_ob
     )
 
 
+@pytest.mark.parametrize("embeddings", ["zero", "random", "tied"])
+def test_both_history_summaries_credit_the_same_positions(embeddings):
+    """A running max along each episode (many transitions per episode) and each transition's
+    own max (about one) give the same history and the same gradients, also where embeddings
+    tie (all zero at the start of a fit): the fit does not depend on which one a batch uses."""
+    torch.manual_seed(0)
+    model = BatchedPredictor(3, 7, 4, 7, PredictorConfig(target="reward"), max_steps=9)
+    with torch.no_grad():
+        if embeddings != "zero":
+            model.embed.normal_()
+        if embeddings == "tied":
+            model.embed[:, 2] = model.embed[:, 3]
+    ids = torch.randint(0, 8, (5, 9))
+    masked = torch.rand(3, 5, 9) < 0.3
+    rows, cols = torch.ones(5, 9, dtype=torch.bool).nonzero(as_tuple=True)
+    weights = torch.randn(3, len(rows), model.embed.shape[-1])
+    summaries = [
+        model._history(ids, masked, rows, cols),  # 45 transitions of 5 episodes: running max
+        model._history(ids[rows], masked[:, rows], torch.arange(len(rows)), cols),  # one each
+    ]
+    gradients = [torch.autograd.grad((h * weights).sum(), model.embed)[0] for h in summaries]
+    assert torch.equal(summaries[0], summaries[1])
+    assert torch.allclose(gradients[0], gradients[1], atol=1e-5)
+    assert gradients[0].abs().sum() > 0
+
+
+def test_reward_target_predicts_only_the_transitions_whose_reward_varies_in_their_context():
+    """A transition is explained when a context of its own (next observation, step, or
+    (o_t, a_t, o_{t+1})) recurs at least `explained_min_count` times with one reward; the rest
+    are predicted. The other targets predict every transition."""
+    episodes = []
+    for i in range(12):
+        # steps into corridor code 7 pay nothing; the step into goal 5 pays in half of them
+        episodes.append(
+            PoolEpisode(
+                np.array([1 + i % 2, 7, 7, 5]),
+                np.zeros(3),
+                np.array([0, 0, float(i % 2)], dtype=np.float32),
+            )
+        )
+    # a goal 6 seen three times (fewer than 10), always paying: too rare to be explained
+    for _ in range(3):
+        episodes.append(PoolEpisode(np.array([3, 6]), np.zeros(1), np.ones(1, np.float32)))
+    # an episode that times out in the corridor: nothing in it to predict, nothing to fit on
+    episodes.append(PoolEpisode(np.array([1, 7, 7]), np.zeros(2), np.zeros(2, np.float32)))
+    data = CodeData(pad_episodes(episodes), PredictorConfig(target="reward"), num_actions=4)
+    predicted = data.predicted
+    assert predicted[:12, 2].all() and not predicted[:12, :2].any()  # only the goal steps
+    assert predicted[12:15, 0].all() and not predicted[15].any()
+    assert int(predicted.sum()) == 12 + 3
+    assert sorted(data.fit_episodes.tolist()) == list(range(15))
+    for target in ("dynamics", "inverse"):
+        other = CodeData(pad_episodes(episodes), PredictorConfig(target=target), num_actions=4)
+        assert torch.equal(other.predicted, other.valid)
+    off = CodeData(
+        pad_episodes(episodes), PredictorConfig(explained_min_count=0, target="reward"), 4
+    )
+    assert torch.equal(off.predicted, off.valid)
+
+
 @pytest.mark.parametrize("target", ["reward", "dynamics", "inverse"])
 @pytest.mark.parametrize("per_episode", [False, True])
-def test_predictor_reads_the_running_max_of_the_kept_history_before_each_step(target, per_episode):
+@pytest.mark.parametrize("one_per_episode", [False, True])
+def test_predictor_reads_the_running_max_of_the_kept_history_before_each_step(
+    target, per_episode, one_per_episode
+):
     """Each transition t's history input is the elementwise max of the embeddings of the kept
     o_1 … o_{t-1} (zero when none is kept), and the first layer sees [history, o_t, a_t or
     o_{t+1} as the target needs, t, intervened set] in w1's row order: checked against a
-    step-by-step reference, with one intervened set per arm or one per episode."""
+    step-by-step reference, with one intervened set per arm or one per episode, and with every
+    transition predicted (a running max) or one per episode (each history's own max)."""
     torch.manual_seed(0)
     config = PredictorConfig(target=target, embed_dim=4, hidden_size=8)
     model = BatchedPredictor(
@@ -114,6 +178,8 @@ def test_predictor_reads_the_running_max_of_the_kept_history_before_each_step(ta
     ids = torch.tensor([[1, 2, 3, 4, 5, 0], [3, 3, 1, 0, 0, 0]])
     actions = torch.tensor([[0, 1, 2, 0, 1], [2, 2, 0, 0, 0]])
     valid = torch.tensor([[True] * 5, [True, True, False, False, False]])
+    if one_per_episode:
+        valid = torch.tensor([[False, False, False, True, False], [False, True] + [False] * 3])
     masked = torch.rand(2, 2, 6) < 0.4  # per member, different positions removed
     masked_codes = torch.rand(2, 2 if per_episode else 1, 6) < 0.5
     out = model(ids, masked, masked_codes, actions, valid)  # (K, n, out)
