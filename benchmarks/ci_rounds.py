@@ -25,19 +25,18 @@ import dataclasses
 import json
 import statistics
 import time
-from multiprocessing.pool import Pool
 from pathlib import Path
 
 import torch
 from saved_ci import load_ci_loop
 
-from thci.causal.loop import run_ci_job, run_ci_job_on_two_cores, start_ci_worker
+from thci.causal.loop import CIWorker, run_ci_job, run_ci_job_on_two_cores, start_ci_worker
 
 RESULTS = Path(__file__).parent / "results"
 
 
 def time_round(
-    run_dir: Path, repeats: int, cold: bool, steps: int | None, workers: Pool | None
+    run_dir: Path, repeats: int, cold: bool, steps: int | None, worker: CIWorker | None
 ) -> dict:
     """Median seconds of the run's CI round on the pool of its last checkpoint."""
     config, loop = load_ci_loop(run_dir, cold)
@@ -47,9 +46,7 @@ def time_round(
     outcomes, walls = [], []
     for _ in range(repeats):
         started = time.perf_counter()
-        outcomes.append(
-            run_ci_job(job) if workers is None else run_ci_job_on_two_cores(job, workers)
-        )
+        outcomes.append(run_ci_job(job) if worker is None else run_ci_job_on_two_cores(job, worker))
         walls.append(time.perf_counter() - started)
     result = outcomes[-1].result
     return {
@@ -64,7 +61,7 @@ def time_round(
         "fit_steps": job.predictor.base_steps
         if job.warm_start is None
         else job.predictor.warm_steps,
-        "two_cores": workers is not None,
+        "two_cores": worker is not None,
         "seconds_median": round(statistics.median(walls), 3),
         "seconds_all": [round(w, 3) for w in walls],
         "compute_seconds_all": [round(o.seconds, 3) for o in outcomes],
@@ -80,8 +77,10 @@ def main() -> None:
     parser.add_argument("--two-cores", action="store_true", help="split the fit with a worker")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    workers = start_ci_worker() if args.two_cores else None
-    rows = [time_round(d, args.repeats, args.cold, args.steps, workers) for d in args.run_dirs]
+    worker = start_ci_worker() if args.two_cores else None
+    if worker is not None:
+        worker.ready.wait()  # time the rounds, not the worker's start-up
+    rows = [time_round(d, args.repeats, args.cold, args.steps, worker) for d in args.run_dirs]
     RESULTS.mkdir(exist_ok=True)
     name = "ci_rounds" + ("_cold" if args.cold else "") + ("_two_cores" if args.two_cores else "")
     name += ".json"

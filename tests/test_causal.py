@@ -616,14 +616,14 @@ def test_ci_rounds_stop_once_two_in_a_row_agree_also_with_undecided_observations
         loop.step(0)
 
     apply_round([0, 1], [0])
-    assert not loop.settled() and loop.due(config.ci_every)  # one round: a second must agree
+    assert loop.due(config.ci_every)  # one round: a second must agree
     apply_round([0], [0])  # disagrees
-    assert not loop.settled()
-    # agrees: settled, though no round confirmed code 1 (a later pool, from a policy acting on
-    # its memory, would hide its effect rather than reveal it)
+    assert loop.due(config.ci_every)
+    # agrees: no more rounds, though no round confirmed code 1 (a later pool, from a policy
+    # acting on its memory, would hide its effect rather than reveal it)
     apply_round([0, 1], [])
     apply_round([0, 1], [])
-    assert loop.settled() and not loop.due(config.ci_every)  # what --stop-on-solve waits for
+    assert not loop.due(config.ci_every)
 
 
 def test_no_ci_round_starts_once_the_run_has_solved_but_one_in_flight_still_applies():
@@ -635,10 +635,10 @@ def test_no_ci_round_starts_once_the_run_has_solved_but_one_in_flight_still_appl
     outcome = CIOutcome(result, Gate(3).state_dict(), 1.0, 0.1, None)
     job = SimpleNamespace(pool=SimpleNamespace(lengths=np.ones(5)))
     loop.pending = _PendingRound(job, 0, 100, _Computed(outcome))  # started before the solve
-    assert not loop.settled(solved=True)  # --stop-on-solve waits for it
     assert loop.step(50, solved=True) is None  # not yet its step
     assert loop.step(100, solved=True) is not None and loop.pending is None  # applied
-    assert loop.settled(solved=True) and not loop.settled()  # unsolved, a second must agree
+    # solved: no next round; unsolved, a second round would have to agree
+    assert loop.due(config.ci_every) and not loop.due(config.ci_every, solved=True)
 
 
 def test_a_run_that_solved_runs_no_final_ci_round():

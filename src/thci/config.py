@@ -211,8 +211,9 @@ class TrainConfig:
     success_return: float | None = None
     """For environments without info['success']: an episode whose return reaches this succeeds."""
     stop_on_solve: bool = False
-    """Stop training once the run is solved (hci, t-hci: and its CI has settled, so that the
-    gate it ends with is final; steps_to_solve is still where it was solved)."""
+    """Stop training once the run is solved (hci, t-hci: with the gate it solved with; a CI round
+    still in flight is dropped. Waiting for it kept Maze-L1 runs training for ci_lag more steps,
+    22k steps to solve and 86k in all)."""
 
     # Bookkeeping
     checkpoint_every: int = 20

@@ -183,18 +183,34 @@ def run_ci_job(job: CIJob, parts: list[FittedPart] | None = None) -> CIOutcome:
     return CIOutcome(result, gate.state_dict(), fit.accuracy, seconds, estimator.state())
 
 
-def run_ci_job_on_two_cores(job: CIJob, workers: Pool) -> CIOutcome:
-    """:func:`run_ci_job` with its fit split: a worker fits half of the ensemble's members,
+@dataclass(frozen=True)
+class CIWorker:
+    """The CI worker process (:func:`start_ci_worker`) and an event set once it has started
+    up."""
+
+    pool: Pool
+    ready: Any  # multiprocessing Event
+
+    def close(self) -> None:
+        """Stop the worker (a round in flight is dropped)."""
+        self.pool.terminate()
+        self.pool.join()
+
+
+def run_ci_job_on_two_cores(job: CIJob, worker: CIWorker) -> CIOutcome:
+    """:func:`run_ci_job` with its fit split: the worker fits half of the ensemble's members,
     this process the other half (the same predictor as one process fitting all), then the
     search runs here. For a round the RL loop waits for, whose core is idle meanwhile. Maze
-    L1-L3 first-round pools, 1000 steps: 10-14 s in one process, 7.4-9.3 s in two. A single
+    L1-L3 first-round pools, 400 steps: 2.5-3.8 s in one process, 2.3-2.8 s in two. A single
     predictor, or one fine-tuned per intervention (which continues the fit's Adam state), is
-    fitted in one piece."""
+    fitted in one piece, and so is a round that comes while the worker is still starting up:
+    waiting for it (a fresh interpreter importing torch and warming up, ~5 s here, as long as
+    Maze L1 takes to fill its first pool) made the RL loop wait 6.2 s for a 2.6 s round."""
     members = job.predictor.ensemble
-    if members < 2 or job.predictor.finetune_steps > 0:
+    if members < 2 or job.predictor.finetune_steps > 0 or not worker.ready.is_set():
         return run_ci_job(job)
     half = members // 2
-    first = workers.apply_async(fit_ci_part, (job, list(range(half))))
+    first = worker.pool.apply_async(fit_ci_part, (job, list(range(half))))
     second = fit_ci_part(job, list(range(half, members)))
     return run_ci_job(job, [first.get(), second])
 
@@ -257,13 +273,13 @@ class CausalInferenceLoop:
         self.pending: _PendingRound | None = None
         self.predictor_state: PredictorState | None = None  # the last applied round's p_ζ
         self.causal_so_far: set[int] = set()  # codes confirmed causal by any applied round
-        self._workers: Pool | None = None
+        self._worker: CIWorker | None = None
 
     # ------------------------------------------------------------------ the RL loop's side
     def observe(self, rollout: Rollout) -> None:
         """Add the episodes that ended in `rollout` to the pool (unfinished ones carry over)."""
-        if self.config.ci_async and self._workers is None:
-            self._workers = start_ci_worker()
+        if self.config.ci_async and self._worker is None:
+            self._worker = start_ci_worker()
         T, N = rollout.dones.shape
         obs = rollout.obs.numpy()
         if self.discretizer is None:  # chosen from the first data, e.g. one-hot -> exact codes
@@ -324,10 +340,6 @@ class CausalInferenceLoop:
             and self._more_rounds()
         )
 
-    def settled(self, solved: bool = False) -> bool:
-        """No round in flight and none to come: the causal set is final."""
-        return self.pending is None and (solved or not self._more_rounds())
-
     def _more_rounds(self) -> bool:
         """Rounds go on until two in a row agree, or until ``ci_max_rounds``, even if some code
         they keep was never confirmed. Going on until every kept code was confirmed left the
@@ -376,10 +388,10 @@ class CausalInferenceLoop:
     def _submit(self, job: CIJob, started_step: int, apply_step: int) -> None:
         blocking = 0.0
         outcome: _Outcome
-        if self.config.ci_async and self._workers is None:  # a round resumed before a rollout
-            self._workers = start_ci_worker()
-        if self._workers is not None and apply_step > started_step:
-            outcome = self._workers.apply_async(run_ci_job, (job,))
+        if self.config.ci_async and self._worker is None:  # a round resumed before a rollout
+            self._worker = start_ci_worker()
+        if self._worker is not None and apply_step > started_step:
+            outcome = self._worker.pool.apply_async(run_ci_job, (job,))
         else:  # the RL loop waits for this round: compute it now
             started = time.perf_counter()
             outcome = _Computed(self._compute_now(job))
@@ -388,9 +400,9 @@ class CausalInferenceLoop:
 
     def _compute_now(self, job: CIJob) -> CIOutcome:
         """A round the RL loop waits for: on both cores when the worker is there."""
-        if self._workers is None:
+        if self._worker is None:
             return run_ci_job(job)
-        return run_ci_job_on_two_cores(job, self._workers)
+        return run_ci_job_on_two_cores(job, self._worker)
 
     def _apply(self, global_step: int) -> CIRound:
         """Wait for the pending round, load its gate, and record it."""
@@ -463,10 +475,9 @@ class CausalInferenceLoop:
 
     def close(self) -> None:
         """Stop the worker process (a round in flight is dropped; checkpoints hold its inputs)."""
-        if self._workers is not None:
-            self._workers.terminate()
-            self._workers.join()
-            self._workers = None
+        if self._worker is not None:
+            self._worker.close()
+            self._worker = None
 
     def describe_causal(self) -> list[int]:
         """The causal observations of the last round, as the index of the one-hot entry when
@@ -583,20 +594,23 @@ class CausalInferenceLoop:
             self._submit(self.make_job(pool), pending["started_step"], pending["apply_step"])
 
 
-def start_ci_worker() -> Pool:
+def start_ci_worker() -> CIWorker:
     """The CI worker process, started with the run: spawned (a fresh interpreter, safe with
     torch threads), it imports torch and this module while the RL loop fills the pool, instead
     of while the RL loop waits for the first round (~2 s of each run's waiting)."""
-    return multiprocessing.get_context("spawn").Pool(1, initializer=_init_worker)
+    context = multiprocessing.get_context("spawn")
+    ready = context.Event()
+    return CIWorker(context.Pool(1, initializer=_init_worker, initargs=(ready,)), ready)
 
 
-def _init_worker() -> None:
+def _init_worker(ready: Any) -> None:
     """Worker initializer; unpickling it imports this module (torch, the predictor). It then
     warms torch up on a tiny synthetic pool: the first fit in a fresh process paid ~1-2 s of
-    one-time set-up, and the RL loop waits for the first round (Maze-L3 pool: 8.6 s cold, 7.4 s
-    after the warm-up)."""
+    one-time set-up, and ~3 s more for the import of torch._dynamo that constructing a torch
+    optimizer triggers. Sets `ready` when done."""
     die_with_parent()
     run_ci_job(planted_ci_job(16, num_episodes=64, episode_length=8, base_steps=5))
+    ready.set()
 
 
 def planted_ci_job(

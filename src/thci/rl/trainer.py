@@ -250,10 +250,9 @@ def _train(
         )
 
     try:
-        # A causal method's run also waits for a round in flight, so that its gate is final.
-        while update < num_updates and not (
-            config.stop_on_solve and tracker.solved and (ci is None or ci.settled(solved=True))
-        ):
+        # A run that stops on solve stops there; a CI round in flight is dropped (its gate would
+        # reach a policy that solved without it, at the step the run ends).
+        while update < num_updates and not (config.stop_on_solve and tracker.solved):
             if config.anneal_lr:
                 for group in optimizer.param_groups:
                     group["lr"] = config.learning_rate * (1 - update / num_updates)
