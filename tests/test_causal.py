@@ -123,9 +123,11 @@ def test_both_history_summaries_credit_the_same_positions(embeddings):
 
 
 def test_reward_target_predicts_only_the_transitions_whose_reward_varies_in_their_context():
-    """A transition is explained when a context of its own (next observation, step, or
-    (o_t, a_t, o_{t+1})) recurs at least `explained_min_count` times with one reward; the rest
-    are predicted. The other targets predict every transition."""
+    """A transition is explained when at least `explained_min_count` *other* transitions share
+    a context of its own (its step; its step and next observation; its step and
+    (o_t, a_t, o_{t+1})) and all have one reward; the rest are predicted, and whether a
+    transition is predicted never depends on its own reward. The other targets predict every
+    transition."""
     episodes = []
     for i in range(12):
         # steps into corridor code 7 pay nothing; the step into goal 5 pays in half of them
@@ -141,12 +143,18 @@ def test_reward_target_predicts_only_the_transitions_whose_reward_varies_in_thei
         episodes.append(PoolEpisode(np.array([3, 6]), np.zeros(1), np.ones(1, np.float32)))
     # an episode that times out in the corridor: nothing in it to predict, nothing to fit on
     episodes.append(PoolEpisode(np.array([1, 7, 7]), np.zeros(2), np.zeros(2, np.float32)))
+    # a step into 8 pays once in twelve: the one that paid is judged on the eleven others (all
+    # unpaid: explained), each unpaid one on ten unpaid and one paid (predicted)
+    for i in range(12):
+        paid = np.array([float(i == 0)], dtype=np.float32)
+        episodes.append(PoolEpisode(np.array([4, 8]), np.zeros(1), paid))
     data = CodeData(pad_episodes(episodes), PredictorConfig(target="reward"), num_actions=4)
     predicted = data.predicted
     assert predicted[:12, 2].all() and not predicted[:12, :2].any()  # only the goal steps
     assert predicted[12:15, 0].all() and not predicted[15].any()
-    assert int(predicted.sum()) == 12 + 3
-    assert sorted(data.fit_episodes.tolist()) == list(range(15))
+    assert not predicted[16].any() and predicted[17:, 0].all()
+    assert int(predicted.sum()) == 12 + 3 + 11
+    assert sorted(data.fit_episodes.tolist()) == list(range(15)) + list(range(17, 28))
     for target in ("dynamics", "inverse"):
         other = CodeData(pad_episodes(episodes), PredictorConfig(target=target), num_actions=4)
         assert torch.equal(other.predicted, other.valid)
@@ -170,17 +178,18 @@ def test_predictor_reads_the_running_max_of_the_kept_history_before_each_step(
     torch.manual_seed(0)
     config = PredictorConfig(target=target, embed_dim=4, hidden_size=8)
     model = BatchedPredictor(
-        2, num_codes=6, num_actions=3, num_classes=6, config=config, max_steps=5
+        2, num_codes=6, num_actions=3, num_classes=6, config=config, max_steps=10
     )
     with torch.no_grad():
         for parameter in model.parameters():
             parameter.normal_()
-    ids = torch.tensor([[1, 2, 3, 4, 5, 0], [3, 3, 1, 0, 0, 0]])
-    actions = torch.tensor([[0, 1, 2, 0, 1], [2, 2, 0, 0, 0]])
-    valid = torch.tensor([[True] * 5, [True, True, False, False, False]])
-    if one_per_episode:
-        valid = torch.tensor([[False, False, False, True, False], [False, True] + [False] * 3])
-    masked = torch.rand(2, 2, 6) < 0.4  # per member, different positions removed
+    ids = torch.tensor([[1, 2, 3, 4, 5, 0, 2, 2, 4, 1, 3], [3, 3, 1] + [0] * 8])
+    actions = torch.randint(0, 3, (2, 10))
+    # 12 transitions of 2 episodes (a running max), or one per episode (each history's own)
+    valid = torch.zeros(2, 10, dtype=torch.bool)
+    valid[0, 3 if one_per_episode else slice(None)] = True
+    valid[1, 1 if one_per_episode else slice(0, 2)] = True
+    masked = torch.rand(2, 2, 11) < 0.4  # per member, different positions removed
     masked_codes = torch.rand(2, 2 if per_episode else 1, 6) < 0.5
     out = model(ids, masked, masked_codes, actions, valid)  # (K, n, out)
     d, num_actions = 4, 3
