@@ -250,6 +250,9 @@ class CausalInferenceLoop:
         num_actions: A.
         num_envs: N, the rollouts' width.
         gate: the agent's gate, fitted here after each round.
+        worker: a CI worker started earlier (:func:`start_ci_worker`), so that its start-up
+            overlaps the run's own; with `ci_async` and none given, the loop starts one with
+            the first rollout. The loop closes it (:meth:`close`).
     """
 
     def __init__(
@@ -259,6 +262,7 @@ class CausalInferenceLoop:
         num_actions: int,
         num_envs: int,
         gate: Gate,
+        worker: CIWorker | None = None,
     ) -> None:
         self.config, self.observation_space = config, observation_space
         self.num_actions, self.gate = num_actions, gate
@@ -273,7 +277,7 @@ class CausalInferenceLoop:
         self.pending: _PendingRound | None = None
         self.predictor_state: PredictorState | None = None  # the last applied round's p_ζ
         self.causal_so_far: set[int] = set()  # codes confirmed causal by any applied round
-        self._worker: CIWorker | None = None
+        self._worker = worker
 
     # ------------------------------------------------------------------ the RL loop's side
     def observe(self, rollout: Rollout) -> None:

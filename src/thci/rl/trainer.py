@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 import thci
 from thci.causal.gate import Gate
-from thci.causal.loop import CausalInferenceLoop
+from thci.causal.loop import CausalInferenceLoop, CIWorker, start_ci_worker
 from thci.causal.taie import kept_observations, measure_taie
 from thci.config import CAUSAL_METHODS, GATED_METHODS, WEIGHING_METHODS, TrainConfig
 from thci.envs.factory import make_vector_env
@@ -103,7 +103,15 @@ def train(config: TrainConfig) -> dict[str, Any]:
     """Train as `config` says; returns the summary also written to summary.json."""
     config.validate()
     torch.set_num_threads(config.torch_threads)
-    envs = make_vector_env(config.env, config.num_envs, config.vectorization)
+    # The CI worker's start-up (a fresh interpreter importing torch, ~6 s here) overlaps the
+    # run's own; started with the first rollout instead, it was not ready for the first round.
+    worker = start_ci_worker() if config.method in CAUSAL_METHODS and config.ci_async else None
+    try:
+        envs = make_vector_env(config.env, config.num_envs, config.vectorization)
+    except BaseException:
+        if worker is not None:
+            worker.close()
+        raise
     try:
         _check_info_keys(config, envs)
         config = dataclasses.replace(config, run_dir=config.run_dir or default_run_dir(config))
@@ -114,9 +122,11 @@ def train(config: TrainConfig) -> dict[str, Any]:
         else:
             run = RunDirectory.create(config.run_dir, config)
             checkpoint = None
-        return _train(config, envs, run, checkpoint)
+        return _train(config, envs, run, checkpoint, worker)
     finally:
         envs.close()
+        if worker is not None:
+            worker.close()
 
 
 # What a memory's side input means, for the error when the environment does not report it.
@@ -148,6 +158,7 @@ def _train(
     envs: VectorEnv,
     run: RunDirectory,
     checkpoint: dict[str, Any] | None,
+    worker: CIWorker | None = None,
 ) -> dict[str, Any]:
     torch.manual_seed(config.seed)
     agent = build_agent(config, envs)
@@ -184,6 +195,7 @@ def _train(
             int(envs.single_action_space.n),
             config.num_envs,
             agent.gate,
+            worker,
         )
     steps_per_update = config.num_envs * config.num_steps
     num_updates = math.ceil(config.total_steps / steps_per_update)
