@@ -9,12 +9,16 @@ budget are skipped and marked as such (HCI needs |O| interventions, fine-grained
     .venv/bin/python benchmarks/interventions.py            # |O| = 1e2 .. 1e5
     .venv/bin/python benchmarks/interventions.py --sizes 100 1000
     .venv/bin/python benchmarks/interventions.py --sizes 1000 --draws-per-code 80
+    .venv/bin/python benchmarks/interventions.py --target dynamics   # Eq. 9 whole
 
 By default there are just enough episodes that almost every code appears (~3 draws per code):
 most codes then occur in a few held-out episodes, too few for any test to decide them, and the
 searches keep what they cannot decide. `--draws-per-code K` generates K draws per code on
 average instead (the CI of each code then has ~K/4 held-out episodes), written to
-interventions_draws{K}.json / .png beside the default files.
+interventions_draws{K}.json / .png beside the default files. The effect predictor learns the
+reward given the transition, as in training (`--ci-target reward`, the default); with
+`--target dynamics` (next observation and reward, Eq. 9 whole) or `inverse` the files get that
+suffix.
 
 Records of sizes not run keep their earlier values. Writes
 benchmarks/results/interventions.json and interventions.png, and prints a table.
@@ -27,11 +31,12 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import get_args
 
 import matplotlib
 import torch
 
-from thci.causal.predictor import EffectEstimator, PredictorConfig
+from thci.causal.predictor import EffectEstimator, PredictorConfig, Target
 from thci.causal.replay import pad_episodes
 from thci.causal.search import CIResult, fine_grained_ci, hci, t_hci
 from thci.causal.synthetic import generate_planted_episodes
@@ -46,7 +51,12 @@ DRAWS_PER_CODE = 3
 
 
 def run_size(
-    num_codes: int, hci_limit: int, fine_limit: int, z: int, draws_per_code: int = DRAWS_PER_CODE
+    num_codes: int,
+    hci_limit: int,
+    fine_limit: int,
+    z: int,
+    draws_per_code: int = DRAWS_PER_CODE,
+    target: Target = "reward",
 ) -> dict:
     """All searches on one |O|; returns a JSON-ready record."""
     # coverage ~ 1 - exp(-E (L+1) / |O|): ~95% of the codes appear with 3 draws per code
@@ -56,7 +66,9 @@ def run_size(
     )
     started = time.perf_counter()
     with torch.random.fork_rng():
-        estimator = EffectEstimator(pad_episodes(data.episodes), 4, PredictorConfig(seed=0))
+        estimator = EffectEstimator(
+            pad_episodes(data.episodes), 4, PredictorConfig(seed=0, target=target)
+        )
     fit_seconds = time.perf_counter() - started
     truth = sorted(data.causal_codes.tolist())
     record = {
@@ -64,6 +76,7 @@ def run_size(
         "observed": estimator.data.num_codes,
         "episodes": episodes,
         "draws_per_code": draws_per_code,
+        "target": target,
         "causal_codes": truth,
         "confounder_codes": sorted(data.confounder_codes.ravel().tolist()),
         "predictor_fit_seconds": round(fit_seconds, 2),
@@ -155,19 +168,24 @@ def main() -> None:
         default=DRAWS_PER_CODE,
         help="average observations of each code",
     )
+    parser.add_argument(
+        "--target", choices=list(get_args(Target)), default="reward", help="what p_ζ predicts"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     RESULTS.mkdir(exist_ok=True)
-    stem = (
-        "interventions"
-        if args.draws_per_code == DRAWS_PER_CODE
-        else f"interventions_draws{args.draws_per_code}"
-    )
+    stem = "interventions"
+    if args.draws_per_code != DRAWS_PER_CODE:
+        stem += f"_draws{args.draws_per_code}"
+    if args.target != "reward":
+        stem += f"_{args.target}"
     path = RESULTS / f"{stem}.json"
     # Sizes not run now keep their earlier records, so one size can be (re)run on its own.
     records = [r for r in _load(path) if r["num_codes"] not in args.sizes]
     for n in args.sizes:  # results are written after every size, so a long run keeps them
-        records.append(run_size(n, args.hci_limit, args.fine_limit, args.z, args.draws_per_code))
+        records.append(
+            run_size(n, args.hci_limit, args.fine_limit, args.z, args.draws_per_code, args.target)
+        )
         records.sort(key=lambda r: r["num_codes"])
         path.write_text(json.dumps(records, indent=2) + "\n")
         plot(records, RESULTS / f"{stem}.png")
