@@ -1,6 +1,7 @@
 """The causal engine against cases with a known answer."""
 
 import math
+import threading
 from types import SimpleNamespace
 
 import gymnasium as gym
@@ -12,11 +13,13 @@ from thci.causal.gate import Gate
 from thci.causal.loop import (
     CausalInferenceLoop,
     CIOutcome,
+    CIWorker,
     _Computed,
     _PendingRound,
     fit_ci_part,
     planted_ci_job,
     run_ci_job,
+    run_ci_job_on_two_cores,
 )
 from thci.causal.predictor import (
     BatchedPredictor,
@@ -657,6 +660,22 @@ def test_a_run_that_solved_runs_no_final_ci_round():
 
     config = TrainConfig(method="t-hci")
     assert _final_inference(None, FinishedLoop(), config, solved=True) == (None, None)
+
+
+def test_a_round_waited_for_before_the_worker_is_ready_is_fitted_here_alone():
+    """While the worker is starting up, run_ci_job_on_two_cores hands it nothing (its pool
+    would raise) and finds what one process fitting the whole round finds."""
+
+    class StartingPool:
+        def apply_async(self, *args, **kwargs):
+            raise AssertionError("the worker is not ready")
+
+    job = planted_ci_job(12, num_episodes=120, episode_length=6, base_steps=20)
+    starting = CIWorker(StartingPool(), threading.Event())
+    alone, here = run_ci_job(job), run_ci_job_on_two_cores(job, starting)
+    assert np.array_equal(alone.result.causal, here.result.causal)
+    for name, value in alone.predictor.parameters.items():
+        assert torch.equal(value, here.predictor.parameters[name]), name
 
 
 def test_a_round_fitted_in_two_parts_finds_exactly_what_one_fit_finds():

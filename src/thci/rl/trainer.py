@@ -105,14 +105,11 @@ def train(config: TrainConfig) -> dict[str, Any]:
     torch.set_num_threads(config.torch_threads)
     # The CI worker's start-up (a fresh interpreter importing torch, ~6 s here) overlaps the
     # run's own; started with the first rollout instead, it was not ready for the first round.
+    # The CI loop closes it at the end of training; this closes it too when training fails first.
     worker = start_ci_worker() if config.method in CAUSAL_METHODS and config.ci_async else None
+    envs = None
     try:
         envs = make_vector_env(config.env, config.num_envs, config.vectorization)
-    except BaseException:
-        if worker is not None:
-            worker.close()
-        raise
-    try:
         _check_info_keys(config, envs)
         config = dataclasses.replace(config, run_dir=config.run_dir or default_run_dir(config))
         assert config.run_dir is not None
@@ -124,7 +121,8 @@ def train(config: TrainConfig) -> dict[str, Any]:
             checkpoint = None
         return _train(config, envs, run, checkpoint, worker)
     finally:
-        envs.close()
+        if envs is not None:
+            envs.close()
         if worker is not None:
             worker.close()
 
