@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from thci.causal.gate import Gate
+from thci.causal.discretize import make_discretizer
+from thci.causal.gate import Gate, GateSpec
 from thci.causal.loop import (
     CausalInferenceLoop,
     CIOutcome,
@@ -38,6 +39,7 @@ from thci.envs.paper_maze import load_maze_level
 from thci.experiments.demo import confounding_demo, door_deciders_kept
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
+from thci.rl.encoders import observation_categories
 from thci.rl.trainer import _final_inference
 
 torch.set_num_threads(1)
@@ -224,6 +226,54 @@ def test_gate_reproduces_eliminated_set_and_decides_unseen_observations():
     assert torch.equal(gate.keep(observations), ~eliminated)
     unseen = torch.rand(5, 12)
     assert gate.keep(unseen).shape == (5,)
+
+
+def _random_babyai_views(seeds: range) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 151) observations of random-action BabyAI-L1 episodes and their causal labels."""
+    env = gym.make("thci/BabyAI-L1-v0")
+    rng = np.random.default_rng(seeds.start)
+    views, labels = [], []
+    for seed in seeds:
+        obs, info = env.reset(seed=seed)
+        done = False
+        while not done:
+            views.append(obs)
+            labels.append(info["causal"])
+            obs, _, terminated, truncated, info = env.step(int(rng.integers(6)))
+            done = terminated or truncated
+    return np.array(views), np.array(labels)
+
+
+def test_cell_set_gate_is_a_function_of_the_set_of_cells():
+    torch.manual_seed(0)
+    gate = GateSpec(3 * 4 + 2, [5] * 12 + [2, 2], cell_layout=(0, 4, 3)).build()
+    obs = torch.randint(0, 5, (6, 14)).float()
+    obs[:, 12:] = torch.randint(0, 2, (6, 2)).float()
+    cells, tail = obs[:, :12].view(6, 4, 3), obs[:, 12:]
+    permuted = torch.cat((cells[:, [2, 0, 3, 1]].reshape(6, 12), tail), 1)
+    assert torch.allclose(gate(permuted), gate(obs))
+    # The same set of cells, one of them twice: [c0, c1, c2, c2] against [c2, c0, c1, c1].
+    once = torch.cat((cells[:, [0, 1, 2, 2]].reshape(6, 12), tail), 1)
+    twice = torch.cat((cells[:, [2, 0, 1, 1]].reshape(6, 12), tail), 1)
+    assert torch.allclose(gate(once), gate(twice))
+    assert not torch.allclose(gate(once), gate(obs))  # c3 is gone from the set
+
+
+def test_cell_set_gate_fitted_on_one_view_per_code_decides_unseen_babyai_views():
+    """Known answer: a cell-set code holds the signpost iff its views are labelled causal, so
+    a gate fitted on one view per code must keep exactly the signpost views it never saw."""
+    torch.manual_seed(0)
+    views, labels = _random_babyai_views(range(150))
+    unseen, unseen_labels = _random_babyai_views(range(1000, 1150))
+    disc = make_discretizer("cell-set", gym.spaces.Box(0, 10, (151,)), cell_layout=(0, 49, 3))
+    _, first = np.unique(disc.encode(views), return_index=True)
+    space = gym.make("thci/BabyAI-L1-v0").observation_space
+    gate = GateSpec(151, observation_categories(space), cell_layout=(0, 49, 3)).build()
+    fit = gate.fit(torch.as_tensor(views[first]).float(), torch.as_tensor(~labels[first]))
+    assert fit.accuracy == 1.0
+    keep = gate.keep(torch.as_tensor(unseen).float()).numpy()
+    assert unseen_labels.sum() > 100
+    assert keep[unseen_labels].mean() > 0.99 and (~keep[~unseen_labels]).mean() > 0.99
 
 
 def test_an_empty_causal_memory_ignores_every_past_observation_until_the_first_gate():

@@ -201,8 +201,14 @@ class TrainConfig:
     """torch threads during CI rounds. 2 is ~1.3x faster on two cores, but multi-threaded
     reductions make CI results differ between processes in the last bits, which can flip a
     threshold decision: the default keeps runs bit-reproducible."""
-    discretizer: Literal["auto", "exact", "simhash"] = "auto"
-    """How observations become codes: exact bytes, SimHash, or chosen from the data."""
+    discretizer: Literal["auto", "exact", "simhash", "cell-set"] = "auto"
+    """How observations become codes: exact bytes, SimHash, the set of cell values in view
+    (images of categorical cells, e.g. minigrid's), or chosen from the data (exact or SimHash)."""
+    cell_layout: tuple[int, int, int] = (0, 49, 3)
+    """For ``cell-set``: entries before the first cell, cells, and values per cell of a flat
+    observation; the other entries are coded exactly. Default: minigrid's 7x7 view of (object,
+    colour, state) cells first, as in the thci/BabyAI levels; a minigrid env flattened by thci
+    puts its one-hot direction first: 4 49 3."""
 
     # Success and solving
     solve_threshold: float = 0.9
@@ -303,6 +309,12 @@ class TrainConfig:
             raise ThciError("--count-memory adds to the count key: it needs --exploration")
         if self.ci_min_support < 1:
             raise ThciError(f"--ci-min-support must be >= 1, got {self.ci_min_support}")
+        offset, *sizes = self.cell_layout
+        if len(sizes) != 2 or offset < 0 or min(sizes) < 1:
+            raise ThciError(
+                "--cell-layout takes three integers (offset >= 0, cells >= 1, values per "
+                f"cell >= 1), got {self.cell_layout}"
+            )
         if self.ci_z < 2:
             raise ThciError(f"--ci-z must be at least 2, got {self.ci_z}")
         if self.ci_xi < 0:
@@ -338,6 +350,8 @@ class TrainConfig:
             values.setdefault("ci_first_lag", values.get("ci_lag", cls.ci_lag))
         if values.get("run_dir") is not None:
             values["run_dir"] = Path(values["run_dir"])
+        if "cell_layout" in values:  # JSON has no tuples
+            values["cell_layout"] = tuple(values["cell_layout"])
         return cls(**values)
 
     def differences(self, other: TrainConfig) -> list[str]:

@@ -8,7 +8,7 @@ Coarse-to-Fine Counterfactual Inference" and App. A.2, citing Zhu et al. 2018a; 
 codes handed out so far: every discretizer gives the codes 0, 1, 2, ... in the order their
 observations are first seen, so ``num_codes`` is |Ô| and codes index dense tables.
 
-Two discretizers:
+Three discretizers:
 
 * :class:`ExactDiscretizer`: one code per distinct observation (its exact bytes). Right for
   symbolic observations: Discrete / MultiDiscrete spaces, integer images (MiniGrid), one-hot
@@ -17,6 +17,12 @@ Two discretizers:
   in the count-based exploration of Tang et al. 2017): the signs of ``bits`` random Gaussian
   projections. Nearby observations share a code more often than distant ones, so continuous
   observations fall into a bounded number (≤ 2**bits) of cells.
+* :class:`CellSetDiscretizer`: for images of categorical cells (minigrid's egocentric view of
+  (object, colour, state) triples), the *set* of distinct cell values in view, wherever they
+  are, plus the rest of the observation exactly. Exact codes of whole views are too fine for
+  CI when the observations that matter are rare views of one object (BabyAI's signpost is seen
+  from many places, each view in one or two episodes: docs/babyai.md); under the set code every
+  view of the same objects shares a code, which recurs often enough to be tested.
 
 :func:`make_discretizer` picks one from the observation space (``kind="auto"``).
 
@@ -35,7 +41,7 @@ import torch
 
 from thci.errors import ThciError
 
-DISCRETIZER_KINDS = ("exact", "simhash", "auto")
+DISCRETIZER_KINDS = ("exact", "simhash", "cell-set", "auto")
 
 
 @runtime_checkable
@@ -297,6 +303,93 @@ class SimHashDiscretizer:
         self._ids = {key: i for i, key in enumerate(state["keys"].tolist())}
 
 
+class CellSetDiscretizer:
+    """Code of the set of distinct cell values in view, plus the observation's tail.
+
+    A flat observation is read as ``offset`` leading entries, ``num_cells`` cells of
+    ``cell_size`` values (e.g. minigrid's 7x7x3 image flattened cell by cell) and trailing
+    entries; the leading and trailing ones (e.g. a one-hot heading) are kept exactly. Two
+    observations share a code iff the same cell values appear in both (in any places, any
+    number of times) and the rest is equal.
+
+    Encoding is vectorized: cell values get ids from an :class:`ExactDiscretizer` over the
+    (B·num_cells, cell_size) rows, each observation's ids become a presence bitmap, and the
+    bitmap's bytes with the tail's bytes are coded by a second :class:`ExactDiscretizer`.
+
+    Args:
+        offset: entries before the first cell.
+        num_cells: cells per observation.
+        cell_size: values per cell.
+    """
+
+    kind = "cell-set"
+    MAX_CELL_VALUES = 1024
+    """Distinct cell values a discretizer can tell apart (the presence bitmap's width)."""
+
+    def __init__(self, offset: int, num_cells: int, cell_size: int) -> None:
+        if offset < 0 or num_cells < 1 or cell_size < 1:
+            raise ThciError(
+                f"cell-set discretizer needs offset >= 0, num_cells >= 1 and cell_size >= 1, "
+                f"got {offset}, {num_cells} and {cell_size}"
+            )
+        self.offset, self.num_cells, self.cell_size = offset, num_cells, cell_size
+        self._cells = ExactDiscretizer()
+        self._sets = ExactDiscretizer()
+
+    @property
+    def num_codes(self) -> int:
+        return self._sets.num_codes
+
+    def encode(self, obs: np.ndarray) -> np.ndarray:
+        """(B, *obs_shape) observations → (B,) int64 codes."""
+        rows = _batch_rows(obs)
+        start, end = self.offset, self.offset + self.num_cells * self.cell_size
+        if rows.shape[1] < end:
+            raise ThciError(
+                f"cell-set discretizer reads {self.num_cells} cells of {self.cell_size} values "
+                f"after {start} entries, but observations have {rows.shape[1]} values; set "
+                "--cell-layout to the observation's (offset, cells, values per cell)"
+            )
+        batch = rows.shape[0]
+        if batch == 0:
+            return np.zeros(0, dtype=np.int64)
+        cells = self._cells.encode(rows[:, start:end].reshape(batch * self.num_cells, -1))
+        if self._cells.num_codes > self.MAX_CELL_VALUES:
+            raise ThciError(
+                f"cell-set discretizer saw {self._cells.num_codes} distinct cell values, more "
+                f"than {self.MAX_CELL_VALUES}: the cells are not categorical; use --discretizer "
+                "exact or simhash"
+            )
+        present = np.zeros((batch, self.MAX_CELL_VALUES), dtype=bool)
+        present[np.repeat(np.arange(batch), self.num_cells), cells] = True
+        rest = np.ascontiguousarray(np.concatenate((rows[:, :start], rows[:, end:]), axis=1))
+        rest_bytes = rest.view(np.uint8).reshape(batch, -1)
+        return self._sets.encode(np.concatenate([np.packbits(present, axis=1), rest_bytes], 1))
+
+    def state_dict(self) -> dict[str, Any]:
+        """{"kind", "offset", "num_cells", "cell_size", "cells": exact state of the cell
+        values, "sets": exact state of the (bitmap, rest) keys}."""
+        return {
+            "kind": self.kind,
+            "offset": self.offset,
+            "num_cells": self.num_cells,
+            "cell_size": self.cell_size,
+            "cells": self._cells.state_dict(),
+            "sets": self._sets.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state.get("kind") != self.kind:
+            raise ThciError(
+                f"cannot load a {state.get('kind')!r} discretizer state into a cell-set "
+                "discretizer; build the discretizer with the kind that saved it"
+            )
+        self.offset = state["offset"]
+        self.num_cells, self.cell_size = state["num_cells"], state["cell_size"]
+        self._cells.load_state_dict(state["cells"])
+        self._sets.load_state_dict(state["sets"])
+
+
 def _integer_valued(sample: np.ndarray) -> bool:
     """True when every value of the batch is a finite integer (ints, bools, one-hot floats)."""
     sample = np.asarray(sample)
@@ -324,7 +417,8 @@ def make_discretizer(
     sample: np.ndarray | None = None,
     bits: int = 16,
     seed: int = 0,
-) -> ExactDiscretizer | SimHashDiscretizer:
+    cell_layout: tuple[int, int, int] | None = None,
+) -> Discretizer:
     """Build the discretizer for an observation space.
 
     Args:
@@ -338,6 +432,8 @@ def make_discretizer(
             the simhash hyperplanes (its mean; without a sample, a Box's midpoint where it is
             bounded, else the origin).
         bits, seed: simhash parameters.
+        cell_layout: (offset, num_cells, cell_size) of "cell-set"; default: the whole
+            observation as cells of 3 values (minigrid's (object, colour, state)).
 
     Raises:
         ThciError: unknown kind or unsupported space.
@@ -369,6 +465,8 @@ def make_discretizer(
     if kind == "exact":
         return ExactDiscretizer()
     obs_dim = int(np.prod(shape)) if len(shape) else 1
+    if kind == "cell-set":
+        return CellSetDiscretizer(*(cell_layout or (0, obs_dim // 3, 3)))
     centre = _default_centre(observation_space, sample, obs_dim)
     return SimHashDiscretizer(obs_dim, bits=bits, seed=seed, centre=centre)
 
@@ -381,6 +479,8 @@ def discretizer_from_state(state: dict[str, Any]) -> Discretizer:
         discretizer = ExactDiscretizer()
     elif kind == SimHashDiscretizer.kind:
         discretizer = SimHashDiscretizer(state["obs_dim"], state["bits"], state["seed"])
+    elif kind == CellSetDiscretizer.kind:
+        discretizer = CellSetDiscretizer(state["offset"], state["num_cells"], state["cell_size"])
     else:
         raise ThciError(f"unknown discretizer state kind {kind!r}: the checkpoint is damaged")
     discretizer.load_state_dict(state)

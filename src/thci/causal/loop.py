@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from thci.causal.discretize import Discretizer, discretizer_from_state, make_discretizer
-from thci.causal.gate import Gate
+from thci.causal.gate import Gate, GateSpec
 from thci.causal.predictor import (
     EffectEstimator,
     PredictorConfig,
@@ -77,7 +77,7 @@ class CIJob:
         pool: the replay pool's episodes when the round started.
         observations: code -> one observation of that code (D,), for the gate fit.
         gate_state: the gate's parameters when the round started (the fit continues them).
-        observation_size: D. num_actions: A.
+        gate: the gate's network (:class:`GateSpec`). num_actions: A.
         method: "hci" or "t-hci". z, xi: the search's Z and ξ.
         predictor: settings of the effect predictor p_ζ.
         threads: torch threads of the round.
@@ -90,7 +90,7 @@ class CIJob:
     pool: PoolArrays
     observations: dict[int, np.ndarray]
     gate_state: dict[str, torch.Tensor]
-    observation_size: int
+    gate: GateSpec
     num_actions: int
     method: str
     z: int
@@ -172,7 +172,7 @@ def run_ci_job(job: CIJob, parts: list[FittedPart] | None = None) -> CIOutcome:
                 min_support=job.min_support,
                 prefer=prefer,
             )
-        gate = Gate(job.observation_size)
+        gate = job.gate.build()
         gate.load_state_dict(job.gate_state)
         observations = torch.as_tensor(
             np.stack([job.observations[int(c)] for c in result.observed]),
@@ -288,7 +288,10 @@ class CausalInferenceLoop:
         obs = rollout.obs.numpy()
         if self.discretizer is None:  # chosen from the first data, e.g. one-hot -> exact codes
             self.discretizer = make_discretizer(
-                self.config.discretizer, self.observation_space, sample=obs.reshape(T * N, -1)
+                self.config.discretizer,
+                self.observation_space,
+                sample=obs.reshape(T * N, -1),
+                cell_layout=self.config.cell_layout,
             )
         codes = self.discretizer.encode(obs.reshape(T * N, -1)).reshape(T, N)
         dones = rollout.dones.numpy()
@@ -362,7 +365,7 @@ class CausalInferenceLoop:
             pool=pool,
             observations={c: self.pool.observations[c] for c in codes},
             gate_state={k: v.clone() for k, v in self.gate.state_dict().items()},
-            observation_size=int(np.prod(self.observation_space.shape)),
+            gate=self.gate.spec,
             num_actions=self.num_actions,
             method=cfg.method,
             z=cfg.ci_z,
@@ -467,7 +470,7 @@ class CausalInferenceLoop:
             self.close()
         job = self.make_job(self.pool.arrays())
         outcome = self._compute_now(job)
-        gate = Gate(job.observation_size)
+        gate = job.gate.build()
         gate.load_state_dict(outcome.gate_state)
         fields = {
             "pool_episodes": len(job.pool.lengths),
@@ -629,7 +632,7 @@ def planted_ci_job(
         pool=pad_episodes(data.episodes),
         observations={c: np.eye(num_codes, dtype=np.float32)[c] for c in range(num_codes)},
         gate_state=Gate(num_codes).state_dict(),
-        observation_size=num_codes,
+        gate=GateSpec(num_codes),
         num_actions=4,
         method="t-hci",
         z=DEFAULT_Z,

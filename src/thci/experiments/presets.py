@@ -62,7 +62,9 @@ QUICK_SLOW_METHODS = {"nm": {**NM_TRAIN, "total_steps": 15_000}, "wmg": {"total_
 # BabyAI: an episodic bonus for new cells (per episode, never fading) and gentler PPO updates
 # (128-step rollouts, 4 epochs of 4 minibatches) took LSTM-PPO on BabyAI-L1 to the memoryless
 # optimum (success 0.5) in 400k steps; a run-wide count bonus on positions with the default
-# updates stayed at 0.1-0.2 after 300k (docs/babyai.md, "Measurements").
+# updates stayed at 0.1-0.2 after 300k (docs/babyai.md, "Measurements"). CI codes views by the
+# set of cells in view: on a BabyAI-L1 pool with a known answer, 735 codes against 5,303 exact
+# ones, and a round's gate kept 42% of unseen signpost views against 2% (benchmarks/babyai_ci.py).
 BABYAI_TRAIN = {
     "stop_on_solve": True,
     "exploration": "episodic",
@@ -71,6 +73,7 @@ BABYAI_TRAIN = {
     "num_steps": 128,
     "update_epochs": 4,
     "num_minibatches": 4,
+    "discretizer": "cell-set",
 }
 
 # Maze levels 3-4 are rewarded in ~0.5% of random episodes: without a bonus on the agent's

@@ -64,13 +64,22 @@ class MemoryContent:
 
     Args:
         observation_space: the flat single-env observation space.
-        kind: discretizer kind for the observations ("auto", "exact", "simhash").
+        kind: discretizer kind for the observations (:data:`DISCRETIZER_KINDS`).
         num_envs: N.
         seed: seed of the per-code keys.
+        cell_layout: (offset, cells, values per cell) of the "cell-set" discretizer.
     """
 
-    def __init__(self, observation_space: gym.Space, kind: str, num_envs: int, seed: int = 0):
+    def __init__(
+        self,
+        observation_space: gym.Space,
+        kind: str,
+        num_envs: int,
+        seed: int = 0,
+        cell_layout: tuple[int, int, int] | None = None,
+    ):
         self.observation_space, self.kind, self.seed = observation_space, kind, seed
+        self.cell_layout = cell_layout
         self.discretizer: Discretizer | None = None
         self.code_keys = np.zeros(0, dtype=np.int64)  # (codes,) the key of each code
         self.held = np.zeros((num_envs, 0), dtype=bool)  # (N, codes) in memory this episode
@@ -97,7 +106,9 @@ class MemoryContent:
         """
         flat = obs.reshape(-1, obs.shape[-1]).numpy()
         if self.discretizer is None:
-            self.discretizer = make_discretizer(self.kind, self.observation_space, sample=flat)
+            self.discretizer = make_discretizer(
+                self.kind, self.observation_space, sample=flat, cell_layout=self.cell_layout
+            )
         codes = self.discretizer.encode(flat).reshape(kept.shape)
         size = int(codes.max()) + 1
         if size > len(self.code_keys):  # a fresh generator per growth step: resumable
@@ -139,11 +150,13 @@ class ExplorationBonus:
     Args:
         observation_space: the flat single-env observation space.
         beta: scale of the bonus.
-        kind: discretizer kind ("auto", "exact", "simhash").
+        kind: discretizer kind (:data:`DISCRETIZER_KINDS`; "cell-set" applies to observations,
+            an info entry is then coded exactly).
         count_key: code this info entry of the reached observation instead (None: the
             observation itself).
         memory: pair each code with the memory's content when the step was taken
             (``--count-memory``); None: codes alone.
+        cell_layout: (offset, cells, values per cell) of the "cell-set" discretizer.
     """
 
     def __init__(
@@ -153,9 +166,10 @@ class ExplorationBonus:
         kind: str = "auto",
         count_key: str | None = None,
         memory: MemoryContent | None = None,
+        cell_layout: tuple[int, int, int] | None = None,
     ) -> None:
         self.observation_space, self.beta, self.kind = observation_space, beta, kind
-        self.count_key, self.memory = count_key, memory
+        self.count_key, self.memory, self.cell_layout = count_key, memory, cell_layout
         self.discretizer: Discretizer | None = None
 
     def reached_codes(
@@ -178,7 +192,10 @@ class ExplorationBonus:
             flat = info.reshape(info.shape[0] * info.shape[1], -1)
             space = gym.spaces.Box(-np.inf, np.inf, flat.shape[1:])
         if self.discretizer is None:
-            self.discretizer = make_discretizer(self.kind, space, sample=flat)
+            kind = "auto" if self.kind == "cell-set" and self.count_key else self.kind
+            self.discretizer = make_discretizer(
+                kind, space, sample=flat, cell_layout=self.cell_layout
+            )
         codes = self.discretizer.encode(flat).reshape(rollout.rewards.shape)
         if self.memory is None:
             return codes
@@ -301,11 +318,16 @@ def make_exploration_bonus(
     count_key: str | None,
     num_envs: int,
     count_memory: bool = False,
+    cell_layout: tuple[int, int, int] | None = None,
 ) -> ExplorationBonus | None:
     """The bonus named by ``--exploration`` (None for "none"); ``count_memory`` pairs its codes
-    with the memory's content."""
-    memory = MemoryContent(observation_space, discretizer, num_envs) if count_memory else None
-    args = (observation_space, beta, discretizer, count_key, memory)
+    with the memory's content; ``cell_layout`` is the "cell-set" discretizer's."""
+    memory = (
+        MemoryContent(observation_space, discretizer, num_envs, cell_layout=cell_layout)
+        if count_memory
+        else None
+    )
+    args = (observation_space, beta, discretizer, count_key, memory, cell_layout)
     if kind == "count":
         return CountBonus(*args)
     episodic = {"episodic": EpisodicNoveltyBonus, "episodic-count": EpisodicCountBonus}

@@ -20,7 +20,7 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 import thci
-from thci.causal.gate import Gate
+from thci.causal.gate import Gate, GateSpec
 from thci.causal.loop import CausalInferenceLoop, CIWorker, start_ci_worker
 from thci.causal.taie import kept_observations, measure_taie
 from thci.config import CAUSAL_METHODS, GATED_METHODS, WEIGHING_METHODS, TrainConfig
@@ -73,15 +73,20 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
         wmg_heads=config.wmg_heads,
         wmg_head_size=config.wmg_head_size,
     )
+    categories = observation_categories(envs.single_observation_space)
+    gate_spec = GateSpec(
+        observation_size,
+        categories,
+        config.cell_layout if config.discretizer == "cell-set" else None,
+    )
+    gate = gate_spec.build(empty_before_fit=config.ci_initial_memory == "empty")
     return ActorCritic(
         observation_size,
         int(envs.single_action_space.n),
         memory,
         config.encoder_size,
-        gate=Gate(observation_size, empty_before_fit=config.ci_initial_memory == "empty")
-        if causal
-        else None,
-        categories=observation_categories(envs.single_observation_space),
+        gate=gate if causal else None,
+        categories=categories,
     )
 
 
@@ -184,6 +189,7 @@ def _train(
         config.count_key,
         config.num_envs,
         count_memory,
+        config.cell_layout,
     )
     ci = None
     if agent.gate is not None:
