@@ -58,6 +58,8 @@ def assert_one_line_error(capsys, code: int, *fragments: str) -> None:
         (["--num-minibatches", "32"], ["--num-minibatches"]),
         (["--resume"], ["--run-dir"]),
         (["--count-memory"], ["--count-memory", "--exploration"]),
+        (["--cell-layout", "0", "0", "3"], ["--cell-layout", "three integers"]),
+        (["--encoder", "grid"], ["--encoder grid", "--encoder flat"]),
     ],
 )
 def test_bad_train_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, fragments):

@@ -1,12 +1,14 @@
 """The observation encoder: one-hot for small integer codes, linear for everything else."""
 
 import numpy as np
+import pytest
 import torch
 from gymnasium import spaces
 
 from thci.config import TrainConfig
 from thci.envs.factory import make_vector_env
-from thci.rl.encoders import OneHotLinear, observation_categories
+from thci.errors import ThciError
+from thci.rl.encoders import GridEncoder, OneHotLinear, observation_categories
 from thci.rl.trainer import build_agent
 
 
@@ -52,3 +54,37 @@ def test_trainer_builds_a_one_hot_encoder_for_babyai_and_a_linear_one_for_the_ma
             torch.as_tensor(obs, dtype=torch.float32)[None], agent.initial_state(1)
         )
         assert logits.shape == (1, 1, agent.actor[-1].out_features)
+
+
+def test_grid_encoder_reads_a_cell_by_its_value_and_place_and_keeps_the_rest():
+    torch.manual_seed(0)
+    layout, categories = (2, 9, 2), [2, 2] + [4, 3] * 9  # two leading entries, 3x3 cells
+    encoder = GridEncoder(20, layout, categories, out_size=8)
+    obs = torch.zeros(5, 20)
+    obs[:, 2:] = torch.randint(0, 3, (5, 18)).float()
+    batched = encoder(obs.view(5, 1, 20))
+    assert batched.shape == (5, 1, 8)
+    assert torch.allclose(batched[:, 0], torch.stack([encoder(o) for o in obs]), atol=1e-6)
+    moved = obs.clone()
+    moved[:, 2:4], moved[:, 4:6] = obs[:, 4:6], obs[:, 2:4]  # swap two cells: another image
+    assert not torch.allclose(encoder(moved), encoder(obs))
+    other_rest = obs.clone()
+    other_rest[:, 0] = 1  # the entries before the cells reach the features too
+    assert not torch.allclose(encoder(other_rest), encoder(obs))
+
+
+def test_trainer_builds_a_grid_encoder_on_request_and_refuses_it_where_cells_are_missing():
+    config = TrainConfig(env="thci/BabyAI-L1-v0", num_envs=1, encoder="grid")
+    envs = make_vector_env(config.env, 1)
+    agent = build_agent(config, envs)
+    obs, _ = envs.reset(seed=0)
+    envs.close()
+    assert isinstance(agent.encoder[0], GridEncoder)
+    logits, _, _ = agent(torch.as_tensor(obs, dtype=torch.float32)[None], agent.initial_state(1))
+    assert logits.shape == (1, 1, 6) and torch.isfinite(logits).all()
+    maze = make_vector_env("thci/PaperMaze-L1-v0", 1)
+    with pytest.raises(ThciError, match="--encoder grid"):
+        build_agent(TrainConfig(env="thci/PaperMaze-L1-v0", num_envs=1, encoder="grid"), maze)
+    maze.close()
+    with pytest.raises(ThciError, match="square"):
+        GridEncoder(151, (0, 50, 3), [3] * 151, 8)

@@ -46,8 +46,10 @@ def test_minigrid_dict_observations_keep_image_and_direction_and_drop_the_missio
         ("minigrid:MiniGrid-Empty-5x5-v0", ["--method", "t-hci", "--ci-every", "256"]),
         (
             "minigrid:MiniGrid-Empty-5x5-v0",
-            ["--method", "t-hci", "--ci-every", "256", "--discretizer", "cell-set"]
-            + ["--cell-layout", "4", "49", "3"],
+            [
+                *("--method", "t-hci", "--ci-every", "256"),
+                *("--discretizer", "cell-set", "--cell-layout", "4", "49", "3"),
+            ],
         ),
         ("CartPole-v1", ["--method", "gru", "--algo", "a2c"]),
     ],

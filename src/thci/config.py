@@ -61,6 +61,9 @@ class TrainConfig:
     """auto: the environment's native batched implementation when it has one, else sync."""
 
     # Model
+    encoder: Literal["flat", "grid"] = "flat"
+    """The observation encoder: one layer on the flat observation (integer codes one-hot), or
+    convolutions over a square image of categorical cells laid out as ``cell_layout`` says."""
     encoder_size: int = 64
     """Width of the observation encoder."""
     hidden_size: int = 64

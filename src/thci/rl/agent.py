@@ -16,7 +16,7 @@ from torch import nn
 
 from thci.causal.gate import Gate
 from thci.memory import Memory
-from thci.rl.encoders import OneHotLinear
+from thci.rl.encoders import GridEncoder, OneHotLinear
 
 
 def _layer(linear: nn.Linear, std: float) -> nn.Linear:
@@ -39,6 +39,8 @@ class ActorCritic(nn.Module):
         categories: for observations of small integer codes, the number of values of each
             dimension (:func:`thci.rl.encoders.observation_categories`): the encoder then reads
             them one-hot. None: a linear encoder on the values as they are.
+        cell_layout: (offset, cells, values per cell) of a square image of categorical cells:
+            the encoder is then a :class:`~thci.rl.encoders.GridEncoder` (needs `categories`).
     """
 
     def __init__(
@@ -49,17 +51,21 @@ class ActorCritic(nn.Module):
         encoder_size: int,
         gate: Gate | None = None,
         categories: list[int] | None = None,
+        cell_layout: tuple[int, int, int] | None = None,
     ) -> None:
         super().__init__()
         self.gate = gate
         self.observation_size = observation_size
         if categories is not None and len(categories) != observation_size:
             raise ValueError(f"{len(categories)} categories for {observation_size} dimensions")
-        first = (
-            OneHotLinear(categories, encoder_size)
-            if categories is not None
-            else _layer(nn.Linear(observation_size, encoder_size), np.sqrt(2))
-        )
+        if cell_layout is not None:
+            if categories is None:
+                raise ValueError("a grid encoder needs integer cells with small bounds")
+            first: nn.Module = GridEncoder(observation_size, cell_layout, categories, encoder_size)
+        elif categories is not None:
+            first = OneHotLinear(categories, encoder_size)
+        else:
+            first = _layer(nn.Linear(observation_size, encoder_size), np.sqrt(2))
         self.encoder = nn.Sequential(first, nn.ReLU())
         self.memory = memory
         # A hidden layer between memory and outputs (as in SB3's RecurrentPPO): with linear

@@ -10,12 +10,15 @@ function as ``Linear(one_hot(obs))`` without building the one-hot tensor).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
 import torch
 from gymnasium import spaces
 from torch import nn
+
+from thci.errors import ThciError
 
 # One-hot encoding is used when every dimension has at most this many values and the
 # expansion stays this small; past that (e.g. raw 0-255 pixels) the linear layer is kept.
@@ -72,3 +75,60 @@ class OneHotLinear(nn.Module):
         # Clamping keeps a masked (zeroed) or out-of-range value a valid index.
         index = torch.minimum(obs.long().clamp(min=0), self.last) + self.offsets
         return self.embedding(index).sum(dim=-2) + self.bias
+
+
+class GridEncoder(nn.Module):
+    """A convolutional encoder for square images of categorical cells (``--encoder grid``).
+
+    Each cell's values become one embedding (:class:`OneHotLinear` over the cell's channels,
+    shared by all cells), two 3x3 convolutions read the grid, and a linear layer maps the result
+    and the observation's other entries (e.g. minigrid's heading) to E features. A cell's
+    meaning is the same wherever it is in view, which a flat one-hot layer has to learn once per
+    position (the BabyAI models use such convolutions over cell embeddings).
+
+    Args:
+        observation_size: D of a flat observation.
+        cell_layout: (offset, n cells, c values per cell); n must be a square (7x7 for minigrid).
+        categories: values per dimension of the observation.
+        out_size: E.
+        channels: width of the cell embedding and of the convolutions.
+    """
+
+    def __init__(
+        self,
+        observation_size: int,
+        cell_layout: tuple[int, int, int],
+        categories: Sequence[int],
+        out_size: int,
+        channels: int = 16,
+    ) -> None:
+        super().__init__()
+        self.offset, num_cells, self.cell_size = cell_layout
+        self.side = math.isqrt(num_cells)
+        if self.side * self.side != num_cells:
+            raise ThciError(
+                f"--encoder grid needs a square number of cells (--cell-layout), got {num_cells}"
+            )
+        self.end = self.offset + num_cells * self.cell_size
+        per_channel = torch.as_tensor(list(categories[self.offset : self.end]))
+        per_channel = per_channel.view(num_cells, self.cell_size).max(dim=0).values
+        self.cell = OneHotLinear(per_channel.tolist(), channels)
+        self.conv = nn.Sequential(
+            nn.ReLU(),
+            nn.Conv2d(channels, 2 * channels, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(2 * channels, 2 * channels, 3, padding=1),
+            nn.ReLU(),
+            nn.Flatten(),
+        )
+        rest = observation_size - self.end + self.offset
+        self.out = nn.Linear(2 * channels * num_cells + rest, out_size)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """(..., D) -> (..., E) features."""
+        lead = obs.shape[:-1]
+        flat = obs.reshape(-1, obs.shape[-1])
+        cells = flat[:, self.offset : self.end].reshape(len(flat), -1, self.cell_size)
+        grid = self.cell(cells).view(len(flat), self.side, self.side, -1).permute(0, 3, 1, 2)
+        rest = torch.cat((flat[:, : self.offset], flat[:, self.end :]), dim=-1)
+        return self.out(torch.cat((self.conv(grid), rest), dim=-1)).view(*lead, -1)

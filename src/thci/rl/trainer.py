@@ -74,6 +74,11 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
         wmg_head_size=config.wmg_head_size,
     )
     categories = observation_categories(envs.single_observation_space)
+    if config.encoder == "grid" and categories is None:
+        raise ThciError(
+            "--encoder grid reads images of small integer cells (a Box of integers with bounds "
+            f"0..31); {config.env} observations are not: use --encoder flat"
+        )
     gate_spec = GateSpec(
         observation_size,
         categories,
@@ -87,6 +92,7 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
         config.encoder_size,
         gate=gate if causal else None,
         categories=categories,
+        cell_layout=config.cell_layout if config.encoder == "grid" else None,
     )
 
 
