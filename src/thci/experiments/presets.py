@@ -64,7 +64,8 @@ QUICK_SLOW_METHODS = {"nm": {**NM_TRAIN, "total_steps": 15_000}, "wmg": {"total_
 # optimum (success 0.5) in 400k steps; a run-wide count bonus on positions with the default
 # updates stayed at 0.1-0.2 after 300k (docs/babyai.md, "Measurements"). CI codes views by the
 # set of cells in view: on a BabyAI-L1 pool with a known answer, 735 codes against 5,303 exact
-# ones, and a round's gate kept 42% of unseen signpost views against 2% (benchmarks/babyai_ci.py).
+# ones, a round 12x faster, and its gate kept 42% of unseen signpost views against 2% (not yet
+# reliably: 2% on a 3,600-episode pool; docs/babyai.md, benchmarks/babyai_ci.py).
 BABYAI_TRAIN = {
     "stop_on_solve": True,
     "exploration": "episodic",
