@@ -96,7 +96,7 @@ def test_resume_with_different_config_is_refused(tmp_path, capsys):
     assert_one_line_error(capsys, code, "config differs", "learning_rate")
 
 
-@pytest.mark.parametrize("damage", ["truncate", "garbage", "pickle"])
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "pickle", "renamed"])
 def test_damaged_checkpoint_is_refused(tmp_path, capsys, damage):
     train(tmp_path, "run", "--total-steps", "256")
     checkpoint = tmp_path / "run" / "checkpoint.pt"
@@ -104,8 +104,13 @@ def test_damaged_checkpoint_is_refused(tmp_path, capsys, damage):
         checkpoint.write_bytes(checkpoint.read_bytes()[: checkpoint.stat().st_size // 2])
     elif damage == "garbage":
         checkpoint.write_bytes(b"not a checkpoint at all")
-    else:  # an arbitrary pickled object must not be loaded (weights_only semantics)
+    elif damage == "pickle":  # an arbitrary pickled object must not be loaded (weights_only)
         torch.save({"format": "thci-checkpoint-v1", "payload": Path("x")}, checkpoint)
+    else:  # a model of another layout (e.g. another thci version's)
+        saved = torch.load(checkpoint, weights_only=True)
+        agent = saved["agent"]
+        agent["encoder.9.weight"] = agent.pop(next(iter(agent)))
+        torch.save(saved, checkpoint)
     code = run_cli(
         ["train", "--run-dir", str(tmp_path / "run"), "--resume", *FAST, "--total-steps", "512"]
     )

@@ -15,7 +15,7 @@ from thci.errors import ThciError
 from thci.experiments.run_dir import RunDirectory, atomic_write_json
 from thci.rl.agent import ActorCritic
 from thci.rl.rollout import Episode, RolloutCollector
-from thci.rl.trainer import build_agent
+from thci.rl.trainer import build_agent, checkpoint_mismatch
 
 
 def load_run(
@@ -36,10 +36,17 @@ def load_run(
     envs = make_vector_env(config.env, num_envs, config.vectorization)
     try:
         agent = build_agent(config, envs)
+    except BaseException:
+        envs.close()
+        raise
+    try:
         agent.load_state_dict(checkpoint["agent"])
     except (KeyError, RuntimeError) as exc:
         envs.close()
-        raise ThciError(f"checkpoint does not match the run's config ({exc})") from None
+        raise ThciError(
+            f"checkpoint does not match the run's config "
+            f"({checkpoint_mismatch(checkpoint, agent, exc)})"
+        ) from None
     return config, envs, agent, checkpoint
 
 

@@ -220,8 +220,9 @@ def _train(
             optimizer.load_state_dict(checkpoint["optimizer"])
         except (KeyError, RuntimeError, ValueError) as exc:
             raise ThciError(
-                f"checkpoint {run.checkpoint_path} does not match this model ({exc}); "
-                "resume with the original settings"
+                f"checkpoint {run.checkpoint_path} does not match this model "
+                f"({checkpoint_mismatch(checkpoint, agent, exc)}); resume with the settings "
+                "and the thci version that wrote it"
             ) from None
         update, global_step = checkpoint["update"], checkpoint["global_step"]
         wall_clock_before = checkpoint["wall_clock_s"]
@@ -374,6 +375,18 @@ def _train(
     }
     run.write_summary(summary)
     return summary
+
+
+def checkpoint_mismatch(checkpoint: dict[str, Any], agent: ActorCritic, exc: Exception) -> str:
+    """One line saying how a checkpoint's parameters differ from the model's."""
+    saved = checkpoint.get("agent")
+    if not isinstance(saved, dict):
+        return str(exc).splitlines()[0]
+    missing = sorted(set(agent.state_dict()) - set(saved))
+    unexpected = sorted(set(saved) - set(agent.state_dict()))
+    if not missing and not unexpected:
+        return "parameters of other shapes"
+    return f"missing {missing[:3]}, unexpected {unexpected[:3]}"
 
 
 def _taie(
