@@ -77,8 +77,9 @@ def collect(
     return out
 
 
-def one_round(kind: str, train: list, held_out: list, space: gym.Space, seed: int) -> dict:
+def one_round(kind: str, train: list, held_out: list, env: gym.Env, seed: int) -> dict:
     """Run a CI round on `train` with discretizer `kind`; score its gate on `held_out`."""
+    space = env.observation_space
     disc = make_discretizer(kind, space, cell_layout=CELL_LAYOUT)
     episodes, representatives, signpost_codes = [], {}, set()
     for views, actions, rewards, labels in train:
@@ -97,7 +98,7 @@ def one_round(kind: str, train: list, held_out: list, space: gym.Space, seed: in
         observations=representatives,
         gate_state=gate_spec.build().state_dict(),
         gate=gate_spec,
-        num_actions=int(gym.make("thci/BabyAI-L1-v0").action_space.n),
+        num_actions=int(env.action_space.n),
         method="t-hci",
         z=DEFAULT_Z,
         xi=DEFAULT_XI,
@@ -138,8 +139,8 @@ def main() -> None:
     torch.set_num_threads(1)
     train = collect(args.level, args.episodes, args.noise, args.seed)
     held_out = collect(args.level, 200, args.noise, args.seed + 1)
-    space = gym.make(f"thci/BabyAI-L{args.level}-v0").observation_space
-    rows = [one_round(kind, train, held_out, space, args.seed) for kind in args.discretizers]
+    env = gym.make(f"thci/BabyAI-L{args.level}-v0")
+    rows = [one_round(kind, train, held_out, env, args.seed) for kind in args.discretizers]
     paid = np.mean([r.sum() > 0 for _, _, r, _ in train])
     saw = np.mean([lab.any() for *_, lab in train])
     print(

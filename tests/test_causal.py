@@ -8,6 +8,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from test_discretize import random_babyai_views
 
 from thci.causal.discretize import make_discretizer
 from thci.causal.gate import Gate, GateSpec
@@ -228,22 +229,6 @@ def test_gate_reproduces_eliminated_set_and_decides_unseen_observations():
     assert gate.keep(unseen).shape == (5,)
 
 
-def _random_babyai_views(seeds: range) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 151) observations of random-action BabyAI-L1 episodes and their causal labels."""
-    env = gym.make("thci/BabyAI-L1-v0")
-    rng = np.random.default_rng(seeds.start)
-    views, labels = [], []
-    for seed in seeds:
-        obs, info = env.reset(seed=seed)
-        done = False
-        while not done:
-            views.append(obs)
-            labels.append(info["causal"])
-            obs, _, terminated, truncated, info = env.step(int(rng.integers(6)))
-            done = terminated or truncated
-    return np.array(views), np.array(labels)
-
-
 def test_cell_set_gate_is_a_function_of_the_set_of_cells():
     torch.manual_seed(0)
     gate = GateSpec(3 * 4 + 2, [5] * 12 + [2, 2], cell_layout=(0, 4, 3)).build()
@@ -263,8 +248,8 @@ def test_cell_set_gate_fitted_on_one_view_per_code_decides_unseen_babyai_views()
     """Known answer: a cell-set code holds the signpost iff its views are labelled causal, so
     a gate fitted on one view per code must keep exactly the signpost views it never saw."""
     torch.manual_seed(0)
-    views, labels = _random_babyai_views(range(150))
-    unseen, unseen_labels = _random_babyai_views(range(1000, 1150))
+    views, labels = random_babyai_views(range(150))
+    unseen, unseen_labels = random_babyai_views(range(1000, 1150))
     disc = make_discretizer("cell-set", gym.spaces.Box(0, 10, (151,)), cell_layout=(0, 49, 3))
     _, first = np.unique(disc.encode(views), return_index=True)
     space = gym.make("thci/BabyAI-L1-v0").observation_space

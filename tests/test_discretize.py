@@ -210,13 +210,12 @@ def test_cell_set_keeps_the_entries_around_the_cells_exactly():
     assert disc.encode(rows).tolist() == [0, 0, 1, 2]
 
 
-def test_cell_set_codes_of_babyai_views_separate_signpost_views():
-    """Known answer: the signpost is the only coloured wall, so every code's observations
-    agree on info["causal"], and codes recur far more often than exact views do."""
+def random_babyai_views(seeds: range) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 151) observations of random-action BabyAI-L1 episodes and their causal labels."""
     env = gym.make("thci/BabyAI-L1-v0")
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seeds.start)
     views, labels = [], []
-    for seed in range(40):
+    for seed in seeds:
         obs, info = env.reset(seed=seed)
         done = False
         while not done:
@@ -224,11 +223,16 @@ def test_cell_set_codes_of_babyai_views_separate_signpost_views():
             labels.append(info["causal"])
             obs, _, terminated, truncated, info = env.step(int(rng.integers(6)))
             done = terminated or truncated
-    views, labels = np.array(views), np.array(labels)
+    return np.array(views), np.array(labels)
+
+
+def test_cell_set_codes_of_babyai_views_separate_signpost_views():
+    """Known answer: the signpost is the only coloured wall, so every code's observations
+    agree on info["causal"], and codes recur far more often than exact views do."""
+    views, labels = random_babyai_views(range(40))
     assert labels.any() and not labels.all()
-    codes = make_discretizer("cell-set", env.observation_space, cell_layout=(0, 49, 3)).encode(
-        views
-    )
+    space = gym.make("thci/BabyAI-L1-v0").observation_space
+    codes = make_discretizer("cell-set", space, cell_layout=(0, 49, 3)).encode(views)
     for code in np.unique(codes):
         assert len(set(labels[codes == code].tolist())) == 1
     exact = ExactDiscretizer().encode(views)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from thci.rl.encoders import OneHotLinear
+from thci.rl.encoders import CellLayout, OneHotLinear
 
 
 @dataclass(frozen=True)
@@ -49,24 +49,18 @@ class CellSetNet(nn.Module):
         hidden_size: int,
     ) -> None:
         super().__init__()
-        self.offset, self.num_cells, self.cell_size = cell_layout
-        self.end = self.offset + self.num_cells * self.cell_size
+        self.layout = CellLayout(cell_layout)
         if categories is None:
-            self.cell: nn.Module = nn.Linear(self.cell_size, hidden_size)
-        else:  # one table for all cells: the largest range of each cell channel
-            cells = torch.as_tensor(list(categories[self.offset : self.end]))
-            per_channel = cells.view(self.num_cells, -1).max(dim=0).values
-            self.cell = OneHotLinear(per_channel.tolist(), hidden_size)
-        rest = observation_size - self.end + self.offset
-        self.rest = nn.Linear(rest, hidden_size, bias=False)
+            self.cell: nn.Module = nn.Linear(self.layout.cell_size, hidden_size)
+        else:
+            self.cell = OneHotLinear(self.layout.channel_categories(categories), hidden_size)
+        self.rest = nn.Linear(self.layout.rest_size(observation_size), hidden_size, bias=False)
         self.out = nn.Sequential(nn.ReLU(), nn.Linear(hidden_size, 1))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """(..., D) -> (..., 1) logits."""
-        cells = obs[..., self.offset : self.end]
-        cells = cells.reshape(*obs.shape[:-1], self.num_cells, self.cell_size)
+        cells, rest = self.layout.split(obs)
         pooled = torch.relu(self.cell(cells)).max(dim=-2).values  # (..., H)
-        rest = torch.cat((obs[..., : self.offset], obs[..., self.end :]), dim=-1)
         return self.out(pooled + self.rest(rest))
 
 

@@ -77,6 +77,35 @@ class OneHotLinear(nn.Module):
         return self.embedding(index).sum(dim=-2) + self.bias
 
 
+class CellLayout:
+    """Where the cells of a flat observation lie (``--cell-layout``): ``offset`` entries before
+    the first cell, ``num_cells`` cells of ``cell_size`` values, then the rest.
+
+    Args:
+        layout: (offset, num_cells, cell_size).
+    """
+
+    def __init__(self, layout: tuple[int, int, int]) -> None:
+        self.offset, self.num_cells, self.cell_size = layout
+        self.end = self.offset + self.num_cells * self.cell_size
+
+    def rest_size(self, observation_size: int) -> int:
+        """Entries outside the cells."""
+        return observation_size - (self.end - self.offset)
+
+    def channel_categories(self, categories: Sequence[int]) -> list[int]:
+        """Values of each cell channel (the largest over cells), for one table shared by all
+        cells."""
+        cells = torch.as_tensor(list(categories[self.offset : self.end]))
+        return cells.view(self.num_cells, self.cell_size).max(dim=0).values.tolist()
+
+    def split(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(..., D) -> cells (..., num_cells, cell_size) and the rest (..., D - cells)."""
+        cells = obs[..., self.offset : self.end]
+        cells = cells.reshape(*obs.shape[:-1], self.num_cells, self.cell_size)
+        return cells, torch.cat((obs[..., : self.offset], obs[..., self.end :]), dim=-1)
+
+
 class GridEncoder(nn.Module):
     """A convolutional encoder for square images of categorical cells (``--encoder grid``).
 
@@ -103,16 +132,14 @@ class GridEncoder(nn.Module):
         channels: int = 16,
     ) -> None:
         super().__init__()
-        self.offset, num_cells, self.cell_size = cell_layout
+        self.layout = CellLayout(cell_layout)
+        num_cells = self.layout.num_cells
         self.side = math.isqrt(num_cells)
         if self.side * self.side != num_cells:
             raise ThciError(
                 f"--encoder grid needs a square number of cells (--cell-layout), got {num_cells}"
             )
-        self.end = self.offset + num_cells * self.cell_size
-        per_channel = torch.as_tensor(list(categories[self.offset : self.end]))
-        per_channel = per_channel.view(num_cells, self.cell_size).max(dim=0).values
-        self.cell = OneHotLinear(per_channel.tolist(), channels)
+        self.cell = OneHotLinear(self.layout.channel_categories(categories), channels)
         self.conv = nn.Sequential(
             nn.ReLU(),
             nn.Conv2d(channels, 2 * channels, 3, padding=1),
@@ -121,14 +148,12 @@ class GridEncoder(nn.Module):
             nn.ReLU(),
             nn.Flatten(),
         )
-        rest = observation_size - self.end + self.offset
+        rest = self.layout.rest_size(observation_size)
         self.out = nn.Linear(2 * channels * num_cells + rest, out_size)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """(..., D) -> (..., E) features."""
         lead = obs.shape[:-1]
-        flat = obs.reshape(-1, obs.shape[-1])
-        cells = flat[:, self.offset : self.end].reshape(len(flat), -1, self.cell_size)
-        grid = self.cell(cells).view(len(flat), self.side, self.side, -1).permute(0, 3, 1, 2)
-        rest = torch.cat((flat[:, : self.offset], flat[:, self.end :]), dim=-1)
+        cells, rest = self.layout.split(obs.reshape(-1, obs.shape[-1]))
+        grid = self.cell(cells).view(len(cells), self.side, self.side, -1).permute(0, 3, 1, 2)
         return self.out(torch.cat((self.conv(grid), rest), dim=-1)).view(*lead, -1)
