@@ -169,11 +169,17 @@ class PredictorConfig:
     confidence_z: float = 2.0
     """The ATE is reported as mean − confidence_z · standard error over held-out episodes."""
     min_code_episodes: int = 10
-    """A code seen in fewer episodes of the pool shares one embedding with the other rare codes
-    (it is still masked on its own). With an embedding of its own, a code that occurs in one or
-    two episodes lets the predictor memorize those episodes' outcomes instead of learning them
-    from the observations that recur: on synthetic data with 10^4 codes (App. J) the planted
-    causes' ATE fell from the expected 0.125 to 0.03, and T-HCI eliminated them."""
+    """A code seen in fewer episodes of the pool is *rare*: as the current or next observation
+    it shares one embedding with the other rare codes, and in the history p_ζ does not see it
+    at all (as if always masked; nor does an intervened set tell it). With an embedding of its
+    own, a code that occurs in one or two episodes lets the predictor memorize those episodes'
+    outcomes instead of learning them from the observations that recur: on synthetic data with
+    10^4 codes (App. J) the planted causes' ATE fell from the expected 0.125 to 0.03, and T-HCI
+    eliminated them. With the shared row in the history (and a mask embedding per rare code),
+    whether *some* rare code was left in a heavily masked history moved the predictions: masking
+    4045 distractors "had" an ATE of 0.26, and single rare codes 0.07-0.22 with intervals too
+    wide to decide, so they were kept. Unseen in the history, a rare set's ATE is exactly 0: it
+    is eliminated, and tested again in a later round once the pool holds it often enough."""
     explained_min_count: int = 10
     """Reward target: a transition is explained without history when at least this many other
     pool transitions share its step (or its step and next observation, or its step and
@@ -194,6 +200,7 @@ class CodeData:
         ids: (E, L+1) long dense ids, padding 0 (masked out by `valid`).
         embed_ids: (E, L+1) long, the embedding row of each observation: its dense id, or
             |Ô| (the shared row) for a code seen in fewer than `min_code_episodes` episodes.
+        frequent: (|Ô|,) bool, the codes that are not rare (seen in that many episodes).
         actions: (E, L) long. rewards: (E, L) float, divided by max |r|.
         valid: (E, L) bool, real transitions.
         next_class: (E, L) long, class of o_{t+1} (dense id, hashed above max_classes).
@@ -216,11 +223,8 @@ class CodeData:
         self.reward_weight = 1.0 / max(float(self.rewards[self.valid].var()), 1e-3)
         self.num_codes = len(self.observed)
         self.num_classes = min(self.num_codes, config.max_classes)
-        self.embed_ids = torch.where(
-            self._episodes_with_code()[self.ids] >= config.min_code_episodes,
-            self.ids,
-            self.num_codes,
-        )
+        self.frequent = self._episodes_with_code() >= config.min_code_episodes
+        self.embed_ids = torch.where(self.frequent[self.ids], self.ids, self.num_codes)
         self.next_class = self.ids[:, 1:] % self.num_classes
 
         self.num_actions = num_actions
@@ -622,7 +626,10 @@ class BatchedPredictor(nn.Module):
         if transitions is not None:
             valid = valid & transitions[:, :steps]
         ids, actions = data.embed_ids[episodes, : steps + 1], data.actions[episodes, :steps]
-        out = self(ids, masked[:, :, : steps + 1], masked_codes, actions, valid)  # (K, n, out)
+        # Rare codes are not seen in the history, nor told as intervened (CodeData.frequent).
+        hidden = masked[:, :, : steps + 1] | (ids == data.num_codes)
+        masked_codes = masked_codes & data.frequent
+        out = self(ids, hidden, masked_codes, actions, valid)  # (K, n, out)
         num_models = out.shape[0]
         true_reward = data.rewards[episodes, :steps][valid].unsqueeze(0)
         if self.target == "dynamics":

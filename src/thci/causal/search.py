@@ -13,15 +13,20 @@ masked. If parts were only tested side by side, two complementary causes (say th
 codes 0 and 1 of Maze level 1, each of which the other's absence reveals) would both look
 removable. Tests run side by side for speed, and every batch that would eliminate several
 parts first checks their union in one more intervention; only when that union has an effect
-are the parts resolved in order: the longest leading run of them whose union has no effect is
-eliminated (found by binary search on union checks) and the rest are tested again. Causal
+are the parts resolved in order (the gate's current choices last, then by ascending ATE, so
+that of a cause and its proxy the cause stays): the longest leading run of them whose union
+has no effect is eliminated (found by binary search on union checks) and the rest are tested
+again. Causal
 verdicts never need re-checking: masking more can only lose information (the ATE is monotone
 in the masked set).
 
 A test has three outcomes, by where the ATE's confidence interval lies against the band
 [−ξ, ξ]:
 
-* inside it: no effect, the set is eliminated (an equivalence test);
+* no higher than ξ: no effect, the set is eliminated (an equivalence test; a true ATE is never
+  negative, so an interval that reaches below −ξ but no higher than ξ still confines it to
+  [0, ξ]: on App. J's data the codes seen in ~20 held-out episodes had such intervals, e.g.
+  [−0.19, 0.10], and were kept as undecided before, three false positives at |O| = 1000);
 * above it, and significantly positive (estimate > ξ, lower bound > 0): a *confirmed* effect.
   A confirmed single observation is causal for good: the CI loop does not test it again
   (`keep` in later rounds), because once the policy acts on a cause, the path it takes tells
@@ -32,8 +37,9 @@ A test has three outcomes, by where the ATE's confidence interval lies against t
   learned to use them, eliminated both: success fell to ~0.5.)
 * anything else: undecided. The set is kept (a wrongly eliminated cause is gone from the
   agent's memory, a wrongly kept set only costs compression) and tested again in the next
-  round on a larger pool. This covers a confidently negative estimate too: a true ATE is never
-  negative, so it means p_ζ is unreliable for that set (see the predictor's module doc).
+  round on a larger pool. This covers a confidently negative estimate too (the whole
+  interval below 0 and reaching below −ξ): a true ATE is never negative, so it means p_ζ is
+  unreliable for that set (see the predictor's module doc).
 
 Only confirmed observations are final, so what an early, noisy pool keeps by doubt does not
 stay in the causal memory for the rest of the run.
@@ -117,18 +123,21 @@ class _Search:
         self.confirmed = np.zeros(0, dtype=np.int64) if confirmed is None else confirmed
         self.records: list[InterventionRecord] = []
 
-    def _run(self, sets: list[np.ndarray], kind: str = "test") -> tuple[np.ndarray, np.ndarray]:
-        """Whether masking each set (with O^w) may have, and has for sure, an effect; see
-        :meth:`run_interventions`."""
+    def _run(
+        self, sets: list[np.ndarray], kind: str = "test"
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Whether masking each set (with O^w) may have, and has for sure, an effect, and its
+        estimated ATE; see :meth:`run_interventions`."""
         return self.run_interventions([Intervention(s) for s in sets], kind)
 
     def run_interventions(
         self, interventions: list[Intervention], kind: str = "test"
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One batched ATE estimate of `interventions` given O^w, every one logged. Returns
-        two (K,) bool arrays: which may have an effect (all but those whose confidence
-        interval lies within [−ξ, ξ]) and which have a confirmed one (estimate above ξ, lower
-        bound above 0); see the module doc."""
+        three (K,) arrays: which may have an effect (bool: all but those whose confidence
+        interval lies within [−ξ, ξ] or, the true ATE being ≥ 0, reaches no higher than ξ
+        without being confidently negative), which have a confirmed one (bool: estimate above
+        ξ, lower bound above 0), and the estimates; see the module doc."""
         started = time.perf_counter()
         estimate = self.estimator.ate(interventions, self.eliminated)
         seconds = time.perf_counter() - started
@@ -146,32 +155,37 @@ class _Search:
                     float(estimate.upper[k]),
                 )
             )
-        effect = (estimate.upper > self.xi) | (estimate.lower < -self.xi)
-        return effect, (estimate.ate > self.xi) & (estimate.lower > 0)
+        misfit = (estimate.upper < 0) & (estimate.lower < -self.xi)
+        effect = (estimate.upper > self.xi) | misfit
+        return effect, (estimate.ate > self.xi) & (estimate.lower > 0), estimate.ate
 
     def resolve(self, parts: list[np.ndarray]) -> list[np.ndarray]:
         """Test `parts` given O^w; eliminate those without effect; return those with effect
         (a single observation with a confirmed effect is also recorded as confirmed)."""
         kept: list[np.ndarray] = []
         while parts:
-            effect, confirmed = self._run(parts)
+            effect, confirmed, ate = self._run(parts)
             kept += [p for p, e in zip(parts, effect, strict=True) if e]
             singles = [p for p, c in zip(parts, confirmed, strict=True) if c and len(p) == 1]
             self.confirmed = np.concatenate([self.confirmed, *singles])
-            drops = [p for p, e in zip(parts, effect, strict=True) if not e]
-            if len(drops) <= 1 or not self._union_has_effect(drops):
-                self._eliminate(drops)
+            drops = [(p, a) for p, e, a in zip(parts, effect, ate, strict=True) if not e]
+            if len(drops) <= 1 or not self._union_has_effect([p for p, _ in drops]):
+                self._eliminate([p for p, _ in drops])
                 return kept
-            # Complementary causes among the drops: the first one is truly removable (it was
+            # Interchangeable causes among the drops: the first one is truly removable (it was
             # tested with the current O^w), and so is the longest run of drops after it whose
             # union has no effect either; the rest must be tested again without them. Which
-            # drops go first decides which of two interchangeable causes stays: the one the
-            # current gate keeps (drops without a preferred code first; the sort is stable),
-            # so that the agent's memory does not swap one for the other from round to round.
-            drops.sort(key=lambda part: bool(np.isin(part, self.prefer).any()))
-            removable = self._removable_prefix(drops)
-            self._eliminate(drops[:removable])
-            parts = drops[removable:]
+            # drops go first decides which of two interchangeable sets stays. First the one the
+            # current gate keeps stays (drops without a preferred code go first), so that the
+            # agent's memory does not swap one for the other from round to round; then the one
+            # with the larger effect: a proxy of a cause (a confounder that shows it 90% of the
+            # time) has an ATE of ~0 beside the cause, the cause ~0.09 beside the proxy (App. J
+            # data), so in id order whichever came first was eliminated, the cause included.
+            drops.sort(key=lambda drop: (bool(np.isin(drop[0], self.prefer).any()), drop[1]))
+            ordered = [p for p, _ in drops]
+            removable = self._removable_prefix(ordered)
+            self._eliminate(ordered[:removable])
+            parts = ordered[removable:]
         return kept
 
     def _removable_prefix(self, drops: list[np.ndarray]) -> int:
@@ -191,7 +205,7 @@ class _Search:
 
     def _union_has_effect(self, parts: list[np.ndarray]) -> bool:
         """Whether masking all `parts` together (with O^w) may have an effect."""
-        effect, _ = self._run([np.concatenate(parts)], "union-check")
+        effect, _, _ = self._run([np.concatenate(parts)], "union-check")
         return bool(effect[0])
 
     def _eliminate(self, parts: list[np.ndarray]) -> None:
@@ -291,7 +305,7 @@ def fine_grained_ci(
     causal = set()
     for begin in range(0, len(pairs), batch_size):
         chunk = pairs[begin : begin + batch_size]
-        effect, _ = search.run_interventions([Intervention(np.array([c]), t) for c, t in chunk])
+        effect, _, _ = search.run_interventions([Intervention(np.array([c]), t) for c, t in chunk])
         causal.update(c for (c, _), e in zip(chunk, effect, strict=True) if e)
     search.eliminated = np.array(sorted(set(range(data.num_codes)) - causal), dtype=np.int64)
     return search.result("fine-grained", started)
