@@ -66,12 +66,6 @@ class TrainConfig:
     convolutions over a square image of categorical cells laid out as ``cell_layout`` says."""
     encoder_size: int = 64
     """Width of the observation encoder."""
-    heads: Literal["concat", "film"] = "concat"
-    """How the policy and value heads join the memory and the current observation: concat
-    (memory output ⊕ observation features), or film: the features modulated by the memory,
-    (1 + γ(m)) ⊙ f + β(m), then ⊕ m (FiLM, Perez et al. 2018, as BabyAI's agents condition
-    the image on the instruction), so that "the remembered colour is the one in view" is a
-    product the heads need not build from sums."""
     hidden_size: int = 64
     """Width of the recurrent memory."""
     history_window: int = 32

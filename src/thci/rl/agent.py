@@ -41,8 +41,6 @@ class ActorCritic(nn.Module):
             them one-hot. None: a linear encoder on the values as they are.
         cell_layout: (offset, cells, values per cell) of a square image of categorical cells:
             the encoder is then a :class:`~thci.rl.encoders.GridEncoder` (needs `categories`).
-        film: the heads read the features modulated by the memory output m,
-            (1 + γ(m)) ⊙ f + β(m) (FiLM), instead of f itself (``--heads film``).
     """
 
     def __init__(
@@ -54,7 +52,6 @@ class ActorCritic(nn.Module):
         gate: Gate | None = None,
         categories: list[int] | None = None,
         cell_layout: tuple[int, int, int] | None = None,
-        film: bool = False,
     ) -> None:
         super().__init__()
         self.gate = gate
@@ -76,11 +73,6 @@ class ActorCritic(nn.Module):
         # The heads see the memory output and the current observation's features: a memory
         # that skips observations (the causal memory) must never hide the present one.
         head_input = memory.output_size + encoder_size
-        # FiLM starts as the identity (γ = β = 0), so both head kinds start alike.
-        self.film = nn.Linear(memory.output_size, 2 * encoder_size) if film else None
-        if self.film is not None:
-            nn.init.zeros_(self.film.weight)
-            nn.init.zeros_(self.film.bias)
         self.actor = self._head(head_input, encoder_size, num_actions, 0.01)
         self.critic = self._head(head_input, encoder_size, 1, 1.0)
 
@@ -150,9 +142,6 @@ class ActorCritic(nn.Module):
         self, out: torch.Tensor, features: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Logits and values from the memory's outputs and the encoder's features."""
-        if self.film is not None:
-            scale, shift = self.film(out).chunk(2, dim=-1)
-            features = features * (1 + scale) + shift
         out = torch.cat((out, features), dim=-1)
         return self.actor(out), self.critic(out).squeeze(-1)
 

@@ -93,7 +93,6 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
         gate=gate if causal else None,
         categories=categories,
         cell_layout=config.cell_layout if config.encoder == "grid" else None,
-        film=config.heads == "film",
     )
 
 
