@@ -56,6 +56,22 @@ def test_trainer_builds_a_one_hot_encoder_for_babyai_and_a_linear_one_for_the_ma
         assert logits.shape == (1, 1, agent.actor[-1].out_features)
 
 
+def test_ci_settings_do_not_change_the_initial_weights_of_a_method_without_ci():
+    # A gate built and thrown away would draw from torch's RNG, so the same seed would start an
+    # LSTM run elsewhere whenever a CI setting changed the gate (it did, with cell-set codes).
+    envs = make_vector_env("thci/BabyAI-L1-v0", 1)
+    weights = []
+    for discretizer in ("exact", "cell-set"):
+        torch.manual_seed(0)
+        config = TrainConfig(env="thci/BabyAI-L1-v0", method="lstm", discretizer=discretizer)
+        agent = build_agent(config, envs)
+        assert agent.gate is None
+        weights.append(agent.state_dict())
+    envs.close()
+    assert weights[0].keys() == weights[1].keys()
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+
+
 def test_grid_encoder_reads_a_cell_by_its_value_and_place_and_keeps_the_rest():
     torch.manual_seed(0)
     layout, categories = (2, 9, 2), [2, 2] + [4, 3] * 9  # two leading entries, 3x3 cells

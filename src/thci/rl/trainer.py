@@ -79,18 +79,20 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
             "--encoder grid reads images of small integer cells (a Box of integers with bounds "
             f"0..31); {config.env} observations are not: use --encoder flat"
         )
-    gate_spec = GateSpec(
-        observation_size,
-        categories,
-        config.cell_layout if config.discretizer == "cell-set" else None,
-    )
-    gate = gate_spec.build(empty_before_fit=config.ci_initial_memory == "empty")
+    gate = None
+    if causal:  # built only when used: building it draws from torch's RNG, as the agent does
+        gate_spec = GateSpec(
+            observation_size,
+            categories,
+            config.cell_layout if config.discretizer == "cell-set" else None,
+        )
+        gate = gate_spec.build(empty_before_fit=config.ci_initial_memory == "empty")
     return ActorCritic(
         observation_size,
         int(envs.single_action_space.n),
         memory,
         config.encoder_size,
-        gate=gate if causal else None,
+        gate=gate,
         categories=categories,
         cell_layout=config.cell_layout if config.encoder == "grid" else None,
     )
