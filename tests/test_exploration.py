@@ -106,3 +106,40 @@ def test_count_memory_counts_a_place_again_when_reached_remembering_something_ne
     np.testing.assert_allclose(plain_rollout.rewards[:, 0].numpy(), [0.5, 0, 0.5, 0])
     bonus.add_bonus(rollout, next_obs, kept)
     np.testing.assert_allclose(rollout.rewards[:, 0].numpy(), [2**-0.5, 0, 2**-0.5, 0])
+
+
+def test_each_gate_has_its_own_counts_of_memory_contents():
+    """An empty memory before the first gate says nothing; under a gate that keeps {0} it says
+    'not 0'. The same (place, empty memory) pair must pay again under the new gate, and a gate
+    seen before resumes its counts."""
+    bonus = EpisodicCountBonus(SPACE, 1.0, num_envs=1, memory=MemoryContent(SPACE, "auto", 1))
+    obs = torch.nn.functional.one_hot(torch.tensor([[1], [2]]), 3).float()
+    rollout = SimpleNamespace(
+        obs=obs,
+        episode_starts=torch.tensor([[1], [0]], dtype=torch.bool),
+        dones=torch.tensor([[0], [1]], dtype=torch.bool),
+        final_obs=obs,
+        rewards=torch.zeros(2, 1),
+    )
+    next_obs = torch.nn.functional.one_hot(torch.tensor([1]), 3).float()
+    kept = np.zeros((2, 1), dtype=bool)  # code 1 is never kept: the memory stays empty
+
+    def first_visit_bonus() -> float:
+        rollout.rewards = torch.zeros(2, 1)
+        bonus.add_bonus(rollout, next_obs, kept)
+        return float(rollout.rewards[0, 0])
+
+    # place 2 is reached twice per rollout (at t=0 and at the episode's end); the first pays
+    counts = [first_visit_bonus() ** -2 for _ in range(3)]
+    np.testing.assert_allclose(counts, [2, 4, 6], rtol=1e-5)
+    bonus.memory.set_gate(np.array([0]))
+    np.testing.assert_allclose(first_visit_bonus() ** -2, 2, rtol=1e-5)  # new again
+    bonus.memory.set_gate(np.array([4, 0]))
+    np.testing.assert_allclose(first_visit_bonus() ** -2, 2, rtol=1e-5)
+    bonus.memory.set_gate(np.array([0]))
+    np.testing.assert_allclose(first_visit_bonus() ** -2, 4, rtol=1e-5)  # {0}'s count goes on
+    bonus.memory.set_gate(np.array([], dtype=np.int64))
+    np.testing.assert_allclose(first_visit_bonus() ** -2, 8, rtol=1e-5)  # as before any gate
+    memory = MemoryContent(SPACE, "auto", 1)
+    memory.load_state_dict(bonus.memory.state_dict())
+    assert memory.gate_key == bonus.memory.gate_key

@@ -36,10 +36,19 @@ oracle's labels. Other memories count places alone, and so does T-HCI before its
 (its memory is empty then). Counting pairs with a memory of every observation (Maze L3 seed 3,
 when T-HCI's memory started full) made almost every pair new: the bonus never faded and the
 agent wandered (success 0.00 at 1M steps).
+
+What a memory content *means* depends on the gate: under T-HCI's gate {0, 2} on Maze L3, an
+empty memory says "indicators 1 and 7" (the variant whose goal is 14), while before the first
+gate it said nothing and was counted at every place of the memoryless phase. So each gate has
+its own counts: the digest of a set is keyed by the gate's kept set on Ô
+(:meth:`MemoryContent.set_gate`), and a gate seen before resumes its counts. Without the key,
+Maze L3 seed 2 kept {0, 2}, learned three goals and stayed at success 0.75 for 900k steps:
+nothing paid for trying the fourth goal with an empty memory.
 """
 
 from __future__ import annotations
 
+import hashlib
 from typing import Any
 
 import gymnasium as gym
@@ -84,7 +93,16 @@ class MemoryContent:
         self.code_keys = np.zeros(0, dtype=np.int64)  # (codes,) the key of each code
         self.held = np.zeros((num_envs, 0), dtype=bool)  # (N, codes) in memory this episode
         self.digest = np.zeros(num_envs, dtype=np.int64)  # (N,) digest of each held set
+        self.gate_key = 0  # keys every digest by the gate that decides what is kept
         self.pairs = ExactDiscretizer()  # (place code, digest) → one code
+
+    def set_gate(self, kept_codes: np.ndarray) -> None:
+        """Key the digests from now on by the gate that keeps `kept_codes` (its kept set on Ô,
+        CI codes): counts of (place, memory) pairs are then per gate (module doc). The empty
+        set gives key 0, the memory before any gate."""
+        codes = np.unique(np.asarray(kept_codes, dtype=np.int64))
+        digest = hashlib.blake2b(codes.tobytes(), digest_size=8).digest() if len(codes) else b""
+        self.gate_key = int.from_bytes(digest, "little") >> 1 if digest else 0
 
     def pair(
         self, places: np.ndarray, obs: torch.Tensor, kept: np.ndarray, starts: np.ndarray
@@ -124,7 +142,7 @@ class MemoryContent:
             new = kept[t] & ~self.held[envs, codes[t]]
             self.digest ^= np.where(new, self.code_keys[codes[t]], 0)
             self.held[envs, codes[t]] |= kept[t]
-            digests[t] = self.digest
+            digests[t] = self.digest ^ self.gate_key
         return digests
 
     def state_dict(self) -> dict[str, Any]:
@@ -134,12 +152,14 @@ class MemoryContent:
             "held": torch.as_tensor(self.held),
             "digest": torch.as_tensor(self.digest),
             "pairs": self.pairs.state_dict(),
+            "gate_key": self.gate_key,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["discretizer"] is not None:
             self.discretizer = discretizer_from_state(state["discretizer"])
         self.pairs = discretizer_from_state(state["pairs"])
+        self.gate_key = int(state.get("gate_key", 0))  # checkpoints from before the key: 0
         for name in ("code_keys", "held", "digest"):
             setattr(self, name, state[name].numpy().copy())
 
