@@ -259,14 +259,29 @@ def test_t_hci_run_reports_ci_and_resumes_to_the_same_result(tmp_path):
     assert without_timing(in_process) == without_timing(reference)
     assert in_process["ci_blocking_s"] >= in_process["ci_wall_clock_s"] * 0.9
 
-    # A round the RL loop waits for is fitted on both cores (half of the ensemble in the
-    # worker): the same result as one process fitting it all.
-    blocking = list(T_HCI_FAST)
-    blocking[blocking.index("--ci-first-lag") + 1] = "0"
-    two_cores = train(tmp_path, "two-cores", "--total-steps", "2048", *blocking)
-    one_core = train(tmp_path, "one-core", "--total-steps", "2048", "--no-ci-async", *blocking)
-    assert two_cores["ci_rounds"] >= 1 and two_cores["ci_blocking_s"] > 0
-    assert without_timing(two_cores) == without_timing(one_core)
+    # A round due at once (first lag 0) runs in the worker beside the next update's rollout,
+    # which could not use its gate anyway: the same result as one process computing it on the
+    # spot, and as a first lag of one update (256 steps), whose gate applies at that update too.
+    def with_first_lag(lag: str) -> list[str]:
+        args = list(T_HCI_FAST)
+        args[args.index("--ci-first-lag") + 1] = lag
+        return args
+
+    at_once = train(tmp_path, "at-once", "--total-steps", "2048", *with_first_lag("0"))
+    one_core = train(
+        tmp_path, "one-core", "--total-steps", "2048", "--no-ci-async", *with_first_lag("0")
+    )
+    one_update = train(tmp_path, "one-update", "--total-steps", "2048", *with_first_lag("256"))
+    assert at_once["ci_rounds"] >= 1 and at_once["ci_blocking_s"] > 0
+    assert without_timing(at_once) == without_timing(one_core) == without_timing(one_update)
+    applied = [
+        [row.split(",")[:2] + row.split(",")[9:10] for row in rows[1:]]
+        for rows in (
+            (tmp_path / name / "ci_rounds.csv").read_text().splitlines()
+            for name in ("at-once", "one-update")
+        )
+    ]
+    assert applied[0] == applied[1]  # round, pool step, applied step
 
 
 @pytest.mark.parametrize("algo", ["a2c", "dmc"])

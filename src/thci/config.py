@@ -129,7 +129,9 @@ class TrainConfig:
     72.7 s against 90.2 s on L3 and 41.5 s against 45.8 s on L4; mean steps 321k against 375k
     and 169k against 162k: the gates take effect later, which changes the runs."""
     ci_first_lag: int = 0
-    """ci_lag of the first round; 0: the RL loop waits for it (one round, a few seconds). Before
+    """ci_lag of the first round; 0: its gate takes effect at the next update, and the RL loop
+    waits there for what is left of the round (it runs in the worker beside that update's
+    rollout, whose gate it could not change anyway; a few seconds on the maze). Before
     the first gate the causal memory is empty (ci_initial_memory), so the policy is memoryless
     until then, and the longer that lasts the more firmly it settles on one guess. On Maze L1
     T-HCI solved at 48.6k-49.8k steps (seeds 1-3) with a first lag of 32768, at 20.4k-43.4k

@@ -200,7 +200,8 @@ class CIWorker:
 def run_ci_job_on_two_cores(job: CIJob, worker: CIWorker) -> CIOutcome:
     """:func:`run_ci_job` with its fit split: the worker fits half of the ensemble's members,
     this process the other half (the same predictor as one process fitting all), then the
-    search runs here. For a round the RL loop waits for, whose core is idle meanwhile. Maze
+    search runs here. For a round the RL loop waits for whole (the final round), whose core is
+    idle meanwhile. Maze
     L1-L3 first-round pools, 400 steps: 2.5-3.8 s in one process, 2.3-2.8 s in two. A single
     predictor, or one fine-tuned per intervention (which continues the fit's Adam state), is
     fitted in one piece, and so is a round that comes while the worker is still starting up:
@@ -397,9 +398,14 @@ class CausalInferenceLoop:
         outcome: _Outcome
         if self.config.ci_async and self._worker is None:  # a round resumed before a rollout
             self._worker = start_ci_worker()
-        if self._worker is not None and apply_step > started_step:
+        # A gate is loaded at the first update at or after its apply step, and the rollout of
+        # the update that starts a round never uses that round's gate, so even a round due at
+        # once (lag 0) can run in the worker beside that rollout: the same gate at the same
+        # step, with the rollout's time off the wait. Only a worker still starting up (a fresh
+        # interpreter importing torch) would be slower than this process.
+        if self._worker is not None and (apply_step > started_step or self._worker.ready.is_set()):
             outcome = self._worker.pool.apply_async(run_ci_job, (job,))
-        else:  # the RL loop waits for this round: compute it now
+        else:  # the worker is not there yet: compute the round now
             started = time.perf_counter()
             outcome = _Computed(self._compute_now(job))
             blocking = time.perf_counter() - started
