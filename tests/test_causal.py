@@ -788,3 +788,35 @@ def test_a_round_fitted_in_two_parts_finds_exactly_what_one_fit_finds():
         assert torch.equal(parts.predictor.parameters[name], value), name
     # a part is those members alone, not a copy of the others
     assert not torch.equal(whole.predictor.parameters["w1"][0], whole.predictor.parameters["w1"][2])
+
+
+class _RareSinglesEstimator(_TableEstimator):
+    """Code 0 is a cause (ATE 0.4 ± 0.05). Codes 1-6 have no effect, but each alone is seen
+    in few episodes: a single test's interval is its estimate ± 0.1, too wide to decide. The
+    interval of a set of them narrows with its support (half-width 0.1 / sqrt(size)) and its
+    estimate is the sum of theirs: 4-6 together are at 0.03 ± 0.058 (no effect), 1 and 4-6 at
+    0.07 ± 0.05 (an effect above ξ)."""
+
+    def __init__(self) -> None:
+        super().__init__({c: (0.0, 0.0) for c in range(7)})
+        self.estimate = {1: 0.04, 2: 0.04, 3: 0.04, 4: 0.01, 5: 0.01, 6: 0.01}
+
+    def ate(self, interventions, eliminated):
+        ate, half = [], []
+        for i in interventions:
+            codes = set(i.codes.tolist())
+            ate.append(0.4 if 0 in codes else sum(self.estimate[c] for c in codes))
+            half.append(0.05 if 0 in codes else 0.1 / np.sqrt(len(codes)))
+        ate, half = np.array(ate), np.array(half)
+        return EffectEstimate(ate, ate - half, ate + half)
+
+
+def test_hci_eliminates_together_the_singles_it_could_not_decide():
+    # Each of codes 1-6 alone is undecided (kept by doubt). Together they have support: the
+    # longest run of them, by ascending estimate, whose union has no effect goes (4, 5, 6);
+    # with code 1 added the union reaches above xi, so 1-3 stay. The cause stays.
+    result = hci(_RareSinglesEstimator())
+    assert result.causal.tolist() == [0, 1, 2, 3]
+    assert result.confirmed.tolist() == [0]
+    union_checks = [r.codes for r in result.interventions if r.kind == "union-check"]
+    assert (4, 5, 6) in union_checks
