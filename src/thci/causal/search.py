@@ -158,9 +158,20 @@ class _Search:
                     float(estimate.upper[k]),
                 )
             )
-        misfit = (estimate.upper < 0) & (estimate.lower < -self.xi)
+        misfit = self._misfit(estimate.lower, estimate.upper)
         effect = (estimate.upper > self.xi) | misfit
         return effect, (estimate.ate > self.xi) & (estimate.lower > 0), estimate.ate
+
+    def _misfit(self, lower, upper):
+        """Confidently negative (the whole interval below 0, reaching below −ξ): p_ζ is
+        unreliable for that set, which stays undecided (module doc)."""
+        return (upper < 0) & (lower < -self.xi)
+
+    def _elimination_order(self, drops: list[tuple[np.ndarray, float]]) -> list[np.ndarray]:
+        """Parts (with their estimated ATEs) in the order they are offered for elimination:
+        those without a code the current gate keeps first, then by ascending ATE."""
+        ordered = sorted(drops, key=lambda d: (bool(np.isin(d[0], self.prefer).any()), d[1]))
+        return [part for part, _ in ordered]
 
     def resolve(self, parts: list[np.ndarray]) -> list[np.ndarray]:
         """Test `parts` given O^w; eliminate those without effect; return those with effect
@@ -184,20 +195,19 @@ class _Search:
             # with the larger effect: a proxy of a cause (a confounder that shows it 90% of the
             # time) has an ATE of ~0 beside the cause, the cause ~0.09 beside the proxy (App. J
             # data), so in id order whichever came first was eliminated, the cause included.
-            drops.sort(key=lambda drop: (bool(np.isin(drop[0], self.prefer).any()), drop[1]))
-            ordered = [p for p, _ in drops]
-            removable = self._removable_prefix(ordered)
+            ordered = self._elimination_order(drops)
+            removable = self._removable_prefix(ordered, low=1)
             self._eliminate(ordered[:removable])
             parts = ordered[removable:]
         return kept
 
-    def _removable_prefix(self, drops: list[np.ndarray]) -> int:
+    def _removable_prefix(self, drops: list[np.ndarray], low: int) -> int:
         """The largest m such that masking drops[:m] together (with O^w) has no effect, given
-        that drops[:1] has none and all of them together have one. Binary search: the ATE is
+        that drops[:low] has none and all of them together have one. Binary search: the ATE is
         monotone in the masked set, so about log2(len(drops)) union checks. Re-testing the
         rest one elimination at a time instead cost a quadratic number of tests on a BabyAI
         pool (37,303 interventions on 6158 codes, the same 6-code part tested up to 191 times)."""
-        low, high = 1, len(drops)  # drops[:low] has no effect, drops[:high] has one
+        high = len(drops)  # drops[:low] has no effect, drops[:high] has one
         while high - low > 1:
             middle = (low + high) // 2
             if self._union_has_effect(drops[:middle]):
@@ -216,40 +226,26 @@ class _Search:
         is eliminated (binary search on union checks; the ATE is monotone in the masked set),
         so a cause, whose estimate is high, is the last to be considered and stays unless it
         too has no effect beside the others."""
-        observed = np.arange(self.estimator.data.num_codes)
-        kept = np.setdiff1d(observed, np.concatenate([self.eliminated, self.confirmed]))
-        latest = {r.codes: r for r in self.records if len(r.codes) == 1 and r.kind == "test"}
-        codes = self.estimator.data.observed
-
-        def tested(c: int) -> InterventionRecord | None:
-            return latest.get((int(codes[c]),))
-
-        # A misfit (confidently negative: p_ζ is unreliable there) stays undecided.
-        candidates = [
-            c
-            for c in kept.tolist()
-            if (r := tested(c)) is None or not (r.ate_upper < 0 and r.ate_lower < -self.xi)
-        ]
-        # As in resolve: what the current gate keeps goes last, then by ascending ATE.
-        order = sorted(
-            candidates,
-            key=lambda c: (bool(np.isin(c, self.prefer)), r.ate if (r := tested(c)) else math.inf),
+        undecided = np.setdiff1d(
+            np.arange(self.estimator.data.num_codes),
+            np.concatenate([self.eliminated, self.confirmed]),
         )
-        drops = [np.array([c]) for c in order]
+        dense = {int(c): d for d, c in enumerate(self.estimator.data.observed)}
+        latest = {  # each undecided single's last test (later records overwrite earlier ones)
+            dense[r.codes[0]]: r for r in self.records if len(r.codes) == 1 and r.kind == "test"
+        }
+        drops = [
+            (np.array([c]), latest[c].ate if c in latest else math.inf)
+            for c in undecided.tolist()
+            if c not in latest or not self._misfit(latest[c].ate_lower, latest[c].ate_upper)
+        ]
         if not drops:
             return
-        low, high = 0, len(drops) + 1  # drops[:low] has no effect; drops[:high] has one
-        if not self._union_has_effect(drops):
-            low = len(drops)
+        ordered = self._elimination_order(drops)
+        if not self._union_has_effect(ordered):
+            self._eliminate(ordered)
         else:
-            high = len(drops)
-            while high - low > 1:
-                middle = (low + high) // 2
-                if self._union_has_effect(drops[:middle]):
-                    high = middle
-                else:
-                    low = middle
-        self._eliminate(drops[:low])
+            self._eliminate(ordered[: self._removable_prefix(ordered, low=0)])
 
     def _union_has_effect(self, parts: list[np.ndarray]) -> bool:
         """Whether masking all `parts` together (with O^w) may have an effect."""

@@ -101,8 +101,8 @@ class MemoryContent:
         CI codes): counts of (place, memory) pairs are then per gate (module doc). The empty
         set gives key 0, the memory before any gate."""
         codes = np.unique(np.asarray(kept_codes, dtype=np.int64))
-        digest = hashlib.blake2b(codes.tobytes(), digest_size=8).digest() if len(codes) else b""
-        self.gate_key = int.from_bytes(digest, "little") >> 1 if digest else 0
+        digest = hashlib.blake2b(codes.tobytes(), digest_size=8).digest()
+        self.gate_key = int.from_bytes(digest, "little") >> 1 if len(codes) else 0  # int64
 
     def pair(
         self, places: np.ndarray, obs: torch.Tensor, kept: np.ndarray, starts: np.ndarray

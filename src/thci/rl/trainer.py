@@ -298,7 +298,7 @@ def _train(
                 record = ci.step(global_step, solved=tracker.solved)
                 if record is not None:
                     write_ci_rounds(run, ci)
-                    if count_memory and bonus is not None and bonus.memory is not None:
+                    if bonus is not None and bonus.memory is not None:  # --count-memory
                         bonus.memory.set_gate(ci.last_result.causal)
                     for key in ("interventions", "observed", "causal", "seconds"):
                         writer.add_scalar(f"ci/{key}", getattr(record, key), global_step)
