@@ -1,5 +1,6 @@
 """The causal engine against cases with a known answer."""
 
+import dataclasses
 import math
 import threading
 from types import SimpleNamespace
@@ -30,6 +31,7 @@ from thci.causal.predictor import (
     EffectEstimator,
     Intervention,
     PredictorConfig,
+    _group_ids,
 )
 from thci.causal.replay import PoolEpisode, ReplayPool, pad_episodes
 from thci.causal.search import CIResult, fine_grained_ci, hci, t_hci
@@ -168,6 +170,43 @@ def test_reward_target_predicts_only_the_transitions_whose_reward_varies_in_thei
         pad_episodes(episodes), PredictorConfig(explained_min_count=0, target="reward"), 4
     )
     assert torch.equal(off.predicted, off.valid)
+
+
+def test_transitions_are_grouped_by_context_as_unique_over_columns_groups_them():
+    generator = torch.Generator().manual_seed(0)
+    for rows, high in ((1, 5), (2, 7), (3, 10**9)):
+        context = torch.randint(high, (rows, 500), generator=generator)
+        _, expected = torch.unique(context, dim=-1, return_inverse=True)
+        assert torch.equal(_group_ids(context), expected)
+    _, expected = torch.unique(context[0], return_inverse=True)
+    assert torch.equal(_group_ids(context[0]), expected)
+    assert _group_ids(torch.zeros(3, 0, dtype=torch.long)).shape == (0,)
+
+
+def test_a_fit_from_scratch_takes_a_small_training_set_whole_and_decays_its_rate(monkeypatch):
+    """A cold fit descends on every training episode at each step while they hold at most
+    `batch_transitions` predicted transitions (minibatches beyond), from `base_learning_rate`
+    falling linearly; a warm-started fit keeps `learning_rate`."""
+    pool = pad_episodes(generate_planted_episodes(8, num_episodes=60, episode_length=6).episodes)
+    batches = []
+    loss = BatchedPredictor.loss
+
+    def recording_loss(self, data, episodes, *rest):
+        batches.append(sorted(episodes.tolist()))
+        return loss(self, data, episodes, *rest)
+
+    monkeypatch.setattr(BatchedPredictor, "loss", recording_loss)
+    config = PredictorConfig(base_steps=5, warm_steps=2)
+    cold = EffectEstimator(pool, 4, config)
+    everything = sorted(cold.data.fit_episodes.tolist())
+    assert batches == [everything] * 5
+    assert cold._optimizer().param_groups[0]["lr"] == pytest.approx(config.base_learning_rate / 5)
+    warm = EffectEstimator(pool, 4, config, warm_start=cold.state())
+    assert warm._optimizer().param_groups[0]["lr"] == config.learning_rate
+    batches.clear()
+    predicted = int(cold.data.predicted[cold.data.fit_episodes].sum())
+    EffectEstimator(pool, 4, dataclasses.replace(config, batch_transitions=predicted // 2))
+    assert len(batches) == 5 and all(len(batch) < len(everything) for batch in batches)
 
 
 @pytest.mark.parametrize("target", ["reward", "dynamics", "inverse"])
@@ -722,7 +761,7 @@ def test_ci_rounds_stop_once_two_in_a_row_agree_also_with_undecided_observations
         result = CIResult("t-hci", observed, eliminated, np.array(kept), np.array(confirmed))
         outcome = CIOutcome(result, Gate(3).state_dict(), 1.0, 0.1, None)
         loop.pending = _PendingRound(job, 0, 0, _Computed(outcome))
-        loop.step(0)
+        loop.step(1)  # the first update after the round's start
 
     apply_round([0, 1], [0])
     assert loop.due(config.ci_every)  # one round: a second must agree
@@ -748,6 +787,21 @@ def test_no_ci_round_starts_once_the_run_has_solved_but_one_in_flight_still_appl
     assert loop.step(100, solved=True) is not None and loop.pending is None  # applied
     # solved: no next round; unsolved, a second round would have to agree
     assert loop.due(config.ci_every) and not loop.due(config.ci_every, solved=True)
+
+
+def test_a_round_due_at_once_takes_effect_at_the_update_after_the_one_it_started_at():
+    """A round starts once a rollout is pooled, before the update trains on it; with lag 0
+    its gate takes effect after the *next* update, as when it started after the training."""
+    config = TrainConfig(method="t-hci", ci_min_episodes=0, ci_min_rewarded_episodes=0)
+    loop = CausalInferenceLoop(config, gym.spaces.Box(0, 1, (3,)), 2, 1, Gate(3))
+    observed = np.arange(3)
+    result = CIResult("t-hci", observed, np.array([2]), np.array([0, 1]), np.array([0]))
+    outcome = CIOutcome(result, Gate(3).state_dict(), 1.0, 0.1, None)
+    job = SimpleNamespace(pool=SimpleNamespace(lengths=np.ones(5)))
+    loop.pending = _PendingRound(job, 2048, 2048, _Computed(outcome))
+    assert loop.step(2048) is None and loop.pending is not None  # the update it started at
+    record = loop.step(4096)
+    assert record is not None and record.global_step == 2048 and record.applied_step == 4096
 
 
 def test_a_run_that_solved_runs_no_final_ci_round():

@@ -180,13 +180,13 @@ class TrainConfig:
     p(r_t | h, o_t, a_t, o_{t+1}) of Eq. 9, what decides the task), next observation and reward
     (dynamics, Eq. 9 whole: in mazes every corridor code predicts where the agent is), or the
     action (inverse dynamics). See thci.causal.predictor."""
-    ci_base_steps: int = 400
+    ci_base_steps: int = 200
     """Adam steps of the effect predictor in the first round (fitted once per round, answers
-    every intervention). An underfitted predictor reads effects into corridor codes. Before the
-    reward target left out the transitions it explains (thci.causal.predictor), 400 steps kept
-    extra codes on five of eleven first-round Maze L1-L3 pools and 1000 steps were needed; since,
-    every batch holds ~6x more of the transitions that decide the reward, and on eleven new
-    pools 400 steps kept what 1000 did on all eleven (250 steps: extra codes on three)."""
+    every intervention), from a rate of 1e-2 decayed linearly, each step on the whole training
+    set when it is small (thci.causal.predictor.PredictorConfig.base_learning_rate). An
+    underfitted predictor reads effects into corridor codes: on the 20 first-round pools of
+    Maze L1-L4 (seeds 1-5), 200 such steps kept what 400 minibatch steps at a constant 3e-3
+    did, and the RL loop waits for this fit (docs/experiments.md)."""
     ci_warm_steps: int = 1000
     """Adam steps of the effect predictor in later rounds, which continue the previous round's
     predictor on the grown pool (0: every round fits from scratch for ci_base_steps). On a

@@ -321,15 +321,31 @@ class CausalInferenceLoop:
             self.pool.add(episode, np.concatenate([piece["obs"], final_obs[end, n][None]]))
 
     # ------------------------------------------------------------------ the CI loop's side
+    def start_if_due(self, global_step: int, solved: bool = False) -> None:
+        """Called once a rollout is pooled, before the RL update that trains on it: starts a
+        round that is due (:meth:`due`), so that it runs beside that update. The pool and the
+        gate are the same before and after the update (the RL loss never trains the gate), so
+        the round is the one :meth:`step` would start after it, begun one update's training
+        earlier (~0.3 s less of the first round's wait on Maze)."""
+        if self.due(global_step, solved):
+            self._start(global_step)
+
     def step(self, global_step: int, solved: bool = False) -> CIRound | None:
         """Called after every RL update: applies the pending round once its step has come
         (waiting for it if need be), then starts the next round when one is due (never once
         the run has `solved` the task, see :meth:`due`)."""
         record = None
-        if self.pending is not None and global_step >= self.pending.apply_step:
+        pending = self.pending
+        # A gate takes effect at an update after the one its round started at, even with
+        # lag 0: a round started before this update's training is the round that, started
+        # after it, would have been applied at the next update.
+        if (
+            pending is not None
+            and global_step > pending.started_step
+            and global_step >= pending.apply_step
+        ):
             record = self._apply(global_step)
-        if self.due(global_step, solved):
-            self._start(global_step)
+        self.start_if_due(global_step, solved)
         return record
 
     def due(self, global_step: int, solved: bool = False) -> bool:

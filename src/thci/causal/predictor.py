@@ -141,7 +141,8 @@ class PredictorConfig:
     embed_dim: int = 16
     hidden_size: int = 64
     base_steps: int = 1000
-    """Adam steps of the base predictor fit (once per CI round)."""
+    """Adam steps of the base predictor fit from scratch (once per CI round, see
+    `base_learning_rate`)."""
     warm_steps: int = 300
     """Adam steps of the fit when it continues an earlier round's predictor (`warm_start`)."""
     ensemble: int = 4
@@ -152,13 +153,24 @@ class PredictorConfig:
     arms_per_pass: int = 16
     """Interventions whose ATEs are evaluated side by side in one pass (bounds memory)."""
     batch_episodes: int = 128
-    """Episodes per Adam step, at most; fewer when they are long (`batch_transitions`)."""
+    """Episodes per Adam step, at most; fewer when they are long (`batch_transitions`). A
+    training set of at most `batch_transitions` predicted transitions is taken whole at every
+    step instead (full-batch descent: no sampling noise, and a step costs about what a
+    minibatch step does, as a step's cost on such pools is per-operation overhead)."""
     batch_transitions: int = 2048
     """Transitions per Adam step, about: long episodes (BabyAI's ~76 steps against the
     maze's ~20) make smaller batches, so a step costs the same on every task. 2048 fitted two
     Maze-L3 pools in 4.6-4.9 s where 4096 took 8.1 s (400 steps, one thread), and kept the
     same sets."""
     learning_rate: float = 3e-3
+    """Adam rate of fits that continue a fitted predictor (`warm_steps`, `finetune_steps`)."""
+    base_learning_rate: float = 1e-2
+    """Adam rate of a fit from scratch (`base_steps`), decayed linearly towards 0 over its
+    steps. A first CI round is the one the RL loop waits for, so its fit must be short: on
+    the 20 first-round pools of Maze L1-L4 (seeds 1-5), 200 steps from 1e-2, each on the whole
+    (small) training set, kept what 400 minibatch steps at a constant 3e-3 kept, in about half
+    the time; 200 minibatch steps at a constant 6e-3 kept corridor codes on 7 of 20 pools
+    (docs/experiments.md)."""
     code_dropout: float = 1.0
     """Largest rate at which the base fit removes codes from an episode's history (see
     :meth:`EffectEstimator._random_code_dropout`)."""
@@ -667,7 +679,7 @@ def _others_agree(context: torch.Tensor, rewards: torch.Tensor, minimum: int) ->
     context (a column of `context`, (n,) or (k, n)) and all of them have one reward. Leaving
     the transition itself out keeps the test blind to its own reward: a rare varying case in
     a context that is otherwise constant is left out whatever it paid, never because of it."""
-    _, group = torch.unique(context, dim=-1, return_inverse=True)
+    group = _group_ids(context)
     groups = int(group.max()) + 1 if len(group) else 0
     low = rewards.new_full((groups,), math.inf).scatter_reduce(0, group, rewards, "amin")
     high = rewards.new_full((groups,), -math.inf).scatter_reduce(0, group, rewards, "amax")
@@ -680,6 +692,23 @@ def _others_agree(context: torch.Tensor, rewards: torch.Tensor, minimum: int) ->
     )  # the only one with its reward: the others share the other value
     constant = (low == high)[group]
     return (count[group] - 1 >= minimum) & (constant | (two_values & alone))
+
+
+def _group_ids(context: torch.Tensor) -> torch.Tensor:
+    """(n,) long: one id per distinct column of `context` ((n,) or (k, n) integers), the same
+    partition as ``torch.unique(context, dim=-1, return_inverse=True)`` gives. Rows are folded
+    in one at a time, each fold a 1-D unique of (group so far, next row) packed into one
+    integer. The ids are the ranks of the columns in lexicographic order, as unique's are; but
+    unique over columns compares them one by one in Python-level loops, which cost ~0.25 s of
+    a Maze-L1 round's 2.7 s (three contexts of ~12k transitions)."""
+    rows = context if context.dim() > 1 else context.unsqueeze(0)
+    group = torch.zeros(rows.shape[1], dtype=torch.long)
+    if rows.shape[1] == 0:
+        return group
+    for row in rows:
+        _, row = torch.unique(row, return_inverse=True)
+        _, group = torch.unique(group * (int(row.max()) + 1) + row, return_inverse=True)
+    return group
 
 
 def fit_members(
@@ -793,19 +822,19 @@ class EffectEstimator:
                 for name, parameter in self.base.named_parameters():
                     parameter.copy_(fitted[name])
             return
-        steps = config.base_steps
+        steps, rate, decay = config.base_steps, config.base_learning_rate, True
         if warm_start is not None:
             largest = max(self.data.num_codes, len(warm_start.observed))
             self.base.warm_start(
                 warm_start, self.data.observed, classes_are_codes=largest <= config.max_classes
             )
-            steps = config.warm_steps
+            steps, rate, decay = config.warm_steps, config.learning_rate, False
         masks = self._random_code_dropout
         if members is not None:
             self.base = self.base.select(list(members))
             masks = self._dropout_of(list(members))
         fitted_members = torch.arange(config.ensemble) if members is None else torch.tensor(members)
-        self._base_optimizer = self._fit(self.base, fitted_members, masks, steps)
+        self._base_optimizer = self._fit(self.base, fitted_members, masks, steps, rate, decay)
 
     def support(self, codes: np.ndarray) -> int:
         """Held-out episodes whose history (before their last transition) holds any of
@@ -863,25 +892,40 @@ class EffectEstimator:
         members: torch.Tensor,
         masks,
         steps: int,
+        learning_rate: float,
+        decay: bool = False,
         optimizer_state: dict[str, Any] | None = None,
     ) -> torch.optim.Adam:
-        """Adam on minibatches of training episodes; the minibatch order depends only on the
-        seed, so every model fine-tuned for the same number of steps sees the same batches.
-        Model k stands for ensemble member `members[k]` and skips the episodes held out for it.
-        `optimizer_state` continues an earlier fit's Adam moments."""
-        optimizer = torch.optim.Adam(model.parameters(), lr=self.config.learning_rate)
+        """Adam at `learning_rate` (with `decay`, falling linearly towards 0 over the steps)
+        on the training episodes: all of them at every step when they hold at most
+        `batch_transitions` predicted transitions, else minibatches whose order depends only
+        on the seed, so every model fine-tuned for the same number of steps sees the same
+        batches. Model k stands for ensemble member `members[k]` and skips the episodes held
+        out for it. `optimizer_state` continues an earlier fit's Adam moments."""
+        # foreach: one multi-tensor update for all parameters, the same arithmetic (the
+        # per-tensor default is slower on these small tensors)
+        optimizer = torch.optim.Adam(model.parameters(), lr=learning_rate, foreach=True)
         if optimizer_state is not None:
             optimizer.load_state_dict(optimizer_state)
+            for group in optimizer.param_groups:  # the state holds the earlier fit's rate
+                group["lr"] = learning_rate
         generator = torch.Generator().manual_seed(self.config.seed + 1)
         train = self.data.fit_episodes
         if len(train) == 0:  # nothing needs the history: every ATE is 0
             return optimizer
-        mean_length = float(self.data.predicted[train].sum(dim=1).float().mean())
+        predicted = int(self.data.predicted[train].sum())
+        mean_length = predicted / len(train)
         by_length = max(1, round(self.config.batch_transitions / max(mean_length, 1.0)))
         size = min(self.config.batch_episodes, by_length, len(train))
-        for _ in range(steps):
-            episodes = train[torch.randint(len(train), (size,), generator=generator)]
-            weights = self.data.fit_weights(episodes, members)
+        whole = predicted <= self.config.batch_transitions
+        episodes, weights = train, self.data.fit_weights(train, members)
+        for step in range(steps):
+            if decay:
+                for group in optimizer.param_groups:
+                    group["lr"] = learning_rate * (1 - step / steps)
+            if not whole:
+                episodes = train[torch.randint(len(train), (size,), generator=generator)]
+                weights = self.data.fit_weights(episodes, members)
             loss = model.loss(self.data, episodes, *masks(episodes), weights)
             optimizer.zero_grad()
             loss.sum().backward()
@@ -1009,7 +1053,8 @@ class EffectEstimator:
                 torch.full((arms,), member),
                 lambda batch: masks(batch)[:2],
                 self.config.finetune_steps,
-                _replicate_state(self._optimizer().state_dict(), arms, member),
+                self.config.learning_rate,
+                optimizer_state=_replicate_state(self._optimizer().state_dict(), arms, member),
             )
         with torch.no_grad():
             errors = model.errors(

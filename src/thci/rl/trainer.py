@@ -291,10 +291,14 @@ def _train(
                 kept = kept_observations(agent, rollout) if count_memory else None
                 mean_bonus = bonus.add_bonus(rollout, collector.obs, kept)
                 writer.add_scalar("charts/intrinsic_reward", mean_bonus, global_step)
+            if ci is not None:  # the CI loop runs on the pool beside the RL updates (Fig. 3)
+                ci.observe(rollout)
+                # This update trains on the rollout as collected, never with a new gate, so a
+                # round due now runs beside it.
+                ci.start_if_due(global_step, solved=tracker.solved)
             losses = algorithm.update(agent, optimizer, rollout)
             update += 1
-            if ci is not None:  # the CI loop runs on the pool between RL updates (Fig. 3)
-                ci.observe(rollout)
+            if ci is not None:
                 record = ci.step(global_step, solved=tracker.solved)
                 if record is not None:
                     write_ci_rounds(run, ci)
