@@ -186,7 +186,7 @@ def test_transitions_are_grouped_by_context_as_unique_over_columns_groups_them()
 def test_a_fit_from_scratch_takes_a_small_training_set_whole_and_decays_its_rate(monkeypatch):
     """A cold fit descends on every training episode at each step while they hold at most
     `batch_transitions` predicted transitions (minibatches beyond), from `base_learning_rate`
-    falling linearly; a warm-started fit keeps `learning_rate`."""
+    falling linearly; a warm-started fit keeps `learning_rate` and minibatches."""
     pool = pad_episodes(generate_planted_episodes(8, num_episodes=60, episode_length=6).episodes)
     batches = []
     loss = BatchedPredictor.loss
@@ -201,8 +201,10 @@ def test_a_fit_from_scratch_takes_a_small_training_set_whole_and_decays_its_rate
     everything = sorted(cold.data.fit_episodes.tolist())
     assert batches == [everything] * 5
     assert cold._optimizer().param_groups[0]["lr"] == pytest.approx(config.base_learning_rate / 5)
+    batches.clear()
     warm = EffectEstimator(pool, 4, config, warm_start=cold.state())
     assert warm._optimizer().param_groups[0]["lr"] == config.learning_rate
+    assert len(batches) == 2 and everything not in batches  # drawn with replacement
     batches.clear()
     predicted = int(cold.data.predicted[cold.data.fit_episodes].sum())
     EffectEstimator(pool, 4, dataclasses.replace(config, batch_transitions=predicted // 2))

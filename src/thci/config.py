@@ -130,14 +130,16 @@ class TrainConfig:
     and 169k against 162k: the gates take effect later, which changes the runs."""
     ci_first_lag: int = 0
     """ci_lag of the first round; 0: its gate takes effect at the next update, and the RL loop
-    waits there for what is left of the round (it runs in the worker beside that update's
-    rollout, whose gate it could not change anyway; a few seconds on the maze). Before
+    waits there for what is left of the round (it runs in the worker beside the training on the
+    rollout that completed its pool and beside the next rollout, neither of which could use
+    its gate; ~1-2 s on the maze). Before
     the first gate the causal memory is empty (ci_initial_memory), so the policy is memoryless
     until then, and the longer that lasts the more firmly it settles on one guess. On Maze L1
     T-HCI solved at 48.6k-49.8k steps (seeds 1-3) with a first lag of 32768, at 20.4k-43.4k
     (seeds 1-5) with 8192 and at 13.4k-16.5k with 0 (LSTM: 11.9k-17.3k); on L2 it solved 3 of 5
     within 80k steps with 8192 and 4 of 5 with 0 (the others tell the variants apart but, in
-    one of them, never find its goal)."""
+    one of them, never find its goal). With 4096, to hide the wait, L1-L2 (seeds 1-5, commit
+    1072512's fit) took more steps in 8 of 10 runs (L2 seed 2: 51.0k against 40.4k)."""
     ci_initial_memory: Literal["empty", "full"] = "empty"
     """What the causal memory holds before the first gate. empty: nothing (the policy is
     memoryless until CI has found what matters); full: every observation (the paper's O^w = ∅

@@ -153,10 +153,10 @@ class PredictorConfig:
     arms_per_pass: int = 16
     """Interventions whose ATEs are evaluated side by side in one pass (bounds memory)."""
     batch_episodes: int = 128
-    """Episodes per Adam step, at most; fewer when they are long (`batch_transitions`). A
-    training set of at most `batch_transitions` predicted transitions is taken whole at every
-    step instead (full-batch descent: no sampling noise, and a step costs about what a
-    minibatch step does, as a step's cost on such pools is per-operation overhead)."""
+    """Episodes per Adam step, at most; fewer when they are long (`batch_transitions`). A fit
+    from scratch takes a training set of at most `batch_transitions` predicted transitions
+    whole at every step instead (full-batch descent: no sampling noise; on a first round's
+    pool a step then costs ~1-1.5x a minibatch step, as it is mostly per-operation overhead)."""
     batch_transitions: int = 2048
     """Transitions per Adam step, about: long episodes (BabyAI's ~76 steps against the
     maze's ~20) make smaller batches, so a step costs the same on every task. 2048 fitted two
@@ -822,19 +822,19 @@ class EffectEstimator:
                 for name, parameter in self.base.named_parameters():
                     parameter.copy_(fitted[name])
             return
-        steps, rate, decay = config.base_steps, config.base_learning_rate, True
+        steps, rate, cold = config.base_steps, config.base_learning_rate, True
         if warm_start is not None:
             largest = max(self.data.num_codes, len(warm_start.observed))
             self.base.warm_start(
                 warm_start, self.data.observed, classes_are_codes=largest <= config.max_classes
             )
-            steps, rate, decay = config.warm_steps, config.learning_rate, False
+            steps, rate, cold = config.warm_steps, config.learning_rate, False
         masks = self._random_code_dropout
         if members is not None:
             self.base = self.base.select(list(members))
             masks = self._dropout_of(list(members))
         fitted_members = torch.arange(config.ensemble) if members is None else torch.tensor(members)
-        self._base_optimizer = self._fit(self.base, fitted_members, masks, steps, rate, decay)
+        self._base_optimizer = self._fit(self.base, fitted_members, masks, steps, rate, cold)
 
     def support(self, codes: np.ndarray) -> int:
         """Held-out episodes whose history (before their last transition) holds any of
@@ -893,15 +893,18 @@ class EffectEstimator:
         masks,
         steps: int,
         learning_rate: float,
-        decay: bool = False,
+        from_scratch: bool = False,
         optimizer_state: dict[str, Any] | None = None,
     ) -> torch.optim.Adam:
-        """Adam at `learning_rate` (with `decay`, falling linearly towards 0 over the steps)
-        on the training episodes: all of them at every step when they hold at most
-        `batch_transitions` predicted transitions, else minibatches whose order depends only
+        """Adam at `learning_rate` on minibatches of training episodes whose order depends only
         on the seed, so every model fine-tuned for the same number of steps sees the same
-        batches. Model k stands for ensemble member `members[k]` and skips the episodes held
-        out for it. `optimizer_state` continues an earlier fit's Adam moments."""
+        batches. A fit `from_scratch` instead takes every training episode at each step when
+        they hold at most `batch_transitions` predicted transitions (a first round's pool),
+        and its rate falls linearly towards 0. Later rounds' warm-started fits keep
+        minibatches: on their larger pools a whole-set step cost several minibatch steps
+        (Maze-L3 rounds of 1000 steps: 17-25 s against 1.1-3.4 s). Model k stands for
+        ensemble member `members[k]` and skips the episodes held out for it.
+        `optimizer_state` continues an earlier fit's Adam moments."""
         # foreach: one multi-tensor update for all parameters, the same arithmetic (the
         # per-tensor default is slower on these small tensors)
         optimizer = torch.optim.Adam(model.parameters(), lr=learning_rate, foreach=True)
@@ -917,10 +920,10 @@ class EffectEstimator:
         mean_length = predicted / len(train)
         by_length = max(1, round(self.config.batch_transitions / max(mean_length, 1.0)))
         size = min(self.config.batch_episodes, by_length, len(train))
-        whole = predicted <= self.config.batch_transitions
+        whole = from_scratch and predicted <= self.config.batch_transitions
         episodes, weights = train, self.data.fit_weights(train, members)
         for step in range(steps):
-            if decay:
+            if from_scratch:
                 for group in optimizer.param_groups:
                     group["lr"] = learning_rate * (1 - step / steps)
             if not whole:
