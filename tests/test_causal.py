@@ -831,6 +831,44 @@ def test_a_round_waited_for_before_the_worker_is_ready_is_fitted_here_alone():
         assert torch.equal(value, here.predictor.parameters[name]), name
 
 
+def test_a_round_queued_on_a_starting_worker_is_computed_here_if_it_has_not_begun():
+    """A round submitted while the worker starts up is queued there; when its gate is due
+    the RL loop takes the worker's result once the worker is up, and otherwise computes the
+    same round itself."""
+
+    class QueuedResult:
+        def __init__(self) -> None:
+            self.taken = False
+
+        def ready(self) -> bool:
+            return False
+
+        def get(self):
+            self.taken = True
+            return "from the worker"
+
+    class StartingPool:
+        def __init__(self) -> None:
+            self.queued = QueuedResult()
+
+        def apply_async(self, function, args):
+            return self.queued
+
+    config = TrainConfig(method="t-hci", ci_min_episodes=0, ci_min_rewarded_episodes=0)
+    job = planted_ci_job(12, num_episodes=120, episode_length=6, base_steps=20)
+    for worker_up in (False, True):
+        pool, ready = StartingPool(), threading.Event()
+        loop = CausalInferenceLoop(config, gym.spaces.Box(0, 1, (12,)), 4, 1, Gate(12))
+        loop._worker = CIWorker(pool, ready)
+        loop._submit(job, 0, 0)
+        if worker_up:
+            ready.set()  # it started on the queued round
+        outcome = loop.pending.outcome.get()
+        assert pool.queued.taken == worker_up
+        if not worker_up:
+            assert np.array_equal(outcome.result.causal, run_ci_job(job).result.causal)
+
+
 def test_a_round_fitted_in_two_parts_finds_exactly_what_one_fit_finds():
     # the RL loop fits half the ensemble while the worker fits the other half
     job = planted_ci_job(12, num_episodes=300, episode_length=12, base_steps=30, seed=4)
