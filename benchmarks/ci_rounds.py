@@ -7,10 +7,9 @@ that run would run (effect predictor fit, T-HCI or HCI search, gate fit: `run_ci
 this process with one torch thread, `--repeats` times, and records the median seconds,
 |Ô|, interventions and the causal set found. A later round continues the previous round's
 predictor (`--ci-warm-steps`); `--cold` times a first round instead (`--ci-base-steps` from
-scratch, on the whole training set, from a decaying rate). `--steps N` fits for N steps
-instead of the run's own setting (e.g. today's default for an older run), `--learning-rate LR`
-with another Adam rate (these two write files of their own, e.g.
-ci_rounds_cold_steps200_lr0.006.json), and `--two-cores` runs the round as the RL
+scratch). `--steps N` fits for N steps instead of the run's own setting (e.g. today's default
+for an older run), `--learning-rate LR` with another Adam rate (these two write files of their
+own, e.g. ci_rounds_cold_steps200_lr0.006.json), and `--two-cores` runs the round as the RL
 loop runs one it waits for: the fit split between this process and a worker
 (`run_ci_job_on_two_cores`); the seconds recorded are then the wall-clock of the round, the
 compute of both processes beside them.
@@ -51,9 +50,8 @@ def time_round(
     if steps is not None:
         loop.config = dataclasses.replace(loop.config, ci_base_steps=steps, ci_warm_steps=steps)
     job = loop.make_job(loop.pool.arrays())
-    rate = "base_learning_rate" if job.warm_start is None else "learning_rate"
     if learning_rate is not None:
-        predictor = dataclasses.replace(job.predictor, **{rate: learning_rate})
+        predictor = dataclasses.replace(job.predictor, learning_rate=learning_rate)
         job = dataclasses.replace(job, predictor=predictor)
     outcomes, walls = [], []
     for _ in range(repeats):
@@ -73,7 +71,7 @@ def time_round(
         "fit_steps": job.predictor.base_steps
         if job.warm_start is None
         else job.predictor.warm_steps,
-        "learning_rate": getattr(job.predictor, rate),
+        "learning_rate": job.predictor.learning_rate,
         "two_cores": worker is not None,
         "seconds_median": round(statistics.median(walls), 3),
         "seconds_all": [round(w, 3) for w in walls],
@@ -87,9 +85,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--cold", action="store_true", help="time a first round")
     parser.add_argument("--steps", type=int, default=None, help="fit steps (default: the run's)")
-    parser.add_argument(
-        "--learning-rate", type=float, default=None, help="the fit's Adam rate (cold: its start)"
-    )
+    parser.add_argument("--learning-rate", type=float, default=None, help="the fit's Adam rate")
     parser.add_argument("--two-cores", action="store_true", help="split the fit with a worker")
     args = parser.parse_args()
     torch.set_num_threads(1)

@@ -1,6 +1,5 @@
 """The causal engine against cases with a known answer."""
 
-import dataclasses
 import math
 import threading
 from types import SimpleNamespace
@@ -181,34 +180,6 @@ def test_transitions_are_grouped_by_context_as_unique_over_columns_groups_them()
     _, expected = torch.unique(context[0], return_inverse=True)
     assert torch.equal(_group_ids(context[0]), expected)
     assert _group_ids(torch.zeros(3, 0, dtype=torch.long)).shape == (0,)
-
-
-def test_a_fit_from_scratch_takes_a_small_training_set_whole_and_decays_its_rate(monkeypatch):
-    """A cold fit descends on every training episode at each step while they hold at most
-    `batch_transitions` predicted transitions (minibatches beyond), from `base_learning_rate`
-    falling linearly; a warm-started fit keeps `learning_rate` and minibatches."""
-    pool = pad_episodes(generate_planted_episodes(8, num_episodes=60, episode_length=6).episodes)
-    batches = []
-    loss = BatchedPredictor.loss
-
-    def recording_loss(self, data, episodes, *rest):
-        batches.append(sorted(episodes.tolist()))
-        return loss(self, data, episodes, *rest)
-
-    monkeypatch.setattr(BatchedPredictor, "loss", recording_loss)
-    config = PredictorConfig(base_steps=5, warm_steps=2)
-    cold = EffectEstimator(pool, 4, config)
-    everything = sorted(cold.data.fit_episodes.tolist())
-    assert batches == [everything] * 5
-    assert cold._optimizer().param_groups[0]["lr"] == pytest.approx(config.base_learning_rate / 5)
-    batches.clear()
-    warm = EffectEstimator(pool, 4, config, warm_start=cold.state())
-    assert warm._optimizer().param_groups[0]["lr"] == config.learning_rate
-    assert len(batches) == 2 and everything not in batches  # drawn with replacement
-    batches.clear()
-    predicted = int(cold.data.predicted[cold.data.fit_episodes].sum())
-    EffectEstimator(pool, 4, dataclasses.replace(config, batch_transitions=predicted // 2))
-    assert len(batches) == 5 and all(len(batch) < len(everything) for batch in batches)
 
 
 @pytest.mark.parametrize("target", ["reward", "dynamics", "inverse"])

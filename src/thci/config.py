@@ -132,14 +132,13 @@ class TrainConfig:
     """ci_lag of the first round; 0: its gate takes effect at the next update, and the RL loop
     waits there for what is left of the round (it runs in the worker beside the training on the
     rollout that completed its pool and beside the next rollout, neither of which could use
-    its gate; ~1-2 s on the maze). Before
+    its gate; a few seconds on the maze). Before
     the first gate the causal memory is empty (ci_initial_memory), so the policy is memoryless
     until then, and the longer that lasts the more firmly it settles on one guess. On Maze L1
     T-HCI solved at 48.6k-49.8k steps (seeds 1-3) with a first lag of 32768, at 20.4k-43.4k
     (seeds 1-5) with 8192 and at 13.4k-16.5k with 0 (LSTM: 11.9k-17.3k); on L2 it solved 3 of 5
     within 80k steps with 8192 and 4 of 5 with 0 (the others tell the variants apart but, in
-    one of them, never find its goal). With 4096, to hide the wait, L1-L2 (seeds 1-5, commit
-    1072512's fit) took more steps in 8 of 10 runs (L2 seed 2: 51.0k against 40.4k)."""
+    one of them, never find its goal)."""
     ci_initial_memory: Literal["empty", "full"] = "empty"
     """What the causal memory holds before the first gate. empty: nothing (the policy is
     memoryless until CI has found what matters); full: every observation (the paper's O^w = ∅
@@ -182,13 +181,13 @@ class TrainConfig:
     p(r_t | h, o_t, a_t, o_{t+1}) of Eq. 9, what decides the task), next observation and reward
     (dynamics, Eq. 9 whole: in mazes every corridor code predicts where the agent is), or the
     action (inverse dynamics). See thci.causal.predictor."""
-    ci_base_steps: int = 200
+    ci_base_steps: int = 400
     """Adam steps of the effect predictor in the first round (fitted once per round, answers
-    every intervention), from a rate of 1e-2 decayed linearly, each step on the whole training
-    set when it is small (thci.causal.predictor.PredictorConfig.base_learning_rate). An
-    underfitted predictor reads effects into corridor codes: on the 20 first-round pools of
-    Maze L1-L4 (seeds 1-5), 200 such steps kept what 400 minibatch steps at a constant 3e-3
-    did, and the RL loop waits for this fit (docs/experiments.md)."""
+    every intervention). An underfitted predictor reads effects into corridor codes. Before the
+    reward target left out the transitions it explains (thci.causal.predictor), 400 steps kept
+    extra codes on five of eleven first-round Maze L1-L3 pools and 1000 steps were needed; since,
+    every batch holds ~6x more of the transitions that decide the reward, and on eleven new
+    pools 400 steps kept what 1000 did on all eleven (250 steps: extra codes on three)."""
     ci_warm_steps: int = 1000
     """Adam steps of the effect predictor in later rounds, which continue the previous round's
     predictor on the grown pool (0: every round fits from scratch for ci_base_steps). On a

@@ -141,8 +141,7 @@ class PredictorConfig:
     embed_dim: int = 16
     hidden_size: int = 64
     base_steps: int = 1000
-    """Adam steps of the base predictor fit from scratch (once per CI round, see
-    `base_learning_rate`)."""
+    """Adam steps of the base predictor fit (once per CI round)."""
     warm_steps: int = 300
     """Adam steps of the fit when it continues an earlier round's predictor (`warm_start`)."""
     ensemble: int = 4
@@ -153,24 +152,13 @@ class PredictorConfig:
     arms_per_pass: int = 16
     """Interventions whose ATEs are evaluated side by side in one pass (bounds memory)."""
     batch_episodes: int = 128
-    """Episodes per Adam step, at most; fewer when they are long (`batch_transitions`). A fit
-    from scratch takes a training set of at most `batch_transitions` predicted transitions
-    whole at every step instead (full-batch descent: no sampling noise; on a first round's
-    pool a step then costs ~1-1.5x a minibatch step, as it is mostly per-operation overhead)."""
+    """Episodes per Adam step, at most; fewer when they are long (`batch_transitions`)."""
     batch_transitions: int = 2048
     """Transitions per Adam step, about: long episodes (BabyAI's ~76 steps against the
     maze's ~20) make smaller batches, so a step costs the same on every task. 2048 fitted two
     Maze-L3 pools in 4.6-4.9 s where 4096 took 8.1 s (400 steps, one thread), and kept the
     same sets."""
     learning_rate: float = 3e-3
-    """Adam rate of fits that continue a fitted predictor (`warm_steps`, `finetune_steps`)."""
-    base_learning_rate: float = 1e-2
-    """Adam rate of a fit from scratch (`base_steps`), decayed linearly towards 0 over its
-    steps. A first CI round is the one the RL loop waits for, so its fit must be short: on
-    the 20 first-round pools of Maze L1-L4 (seeds 1-5), 200 steps from 1e-2, each on the whole
-    (small) training set, kept what 400 minibatch steps at a constant 3e-3 kept, in about half
-    the time; 200 minibatch steps at a constant 6e-3 kept corridor codes on 7 of 20 pools
-    (docs/experiments.md)."""
     code_dropout: float = 1.0
     """Largest rate at which the base fit removes codes from an episode's history (see
     :meth:`EffectEstimator._random_code_dropout`)."""
@@ -696,11 +684,11 @@ def _others_agree(context: torch.Tensor, rewards: torch.Tensor, minimum: int) ->
 
 def _group_ids(context: torch.Tensor) -> torch.Tensor:
     """(n,) long: one id per distinct column of `context` ((n,) or (k, n) integers), the same
-    partition as ``torch.unique(context, dim=-1, return_inverse=True)`` gives. Rows are folded
-    in one at a time, each fold a 1-D unique of (group so far, next row) packed into one
-    integer. The ids are the ranks of the columns in lexicographic order, as unique's are; but
-    unique over columns compares them one by one in Python-level loops, which cost ~0.25 s of
-    a Maze-L1 round's 2.7 s (three contexts of ~12k transitions)."""
+    ids as ``torch.unique(context, dim=-1, return_inverse=True)`` gives. Rows are folded in one
+    at a time, each fold a 1-D unique of (group so far, next row) packed into one integer. The
+    ids are the ranks of the columns in lexicographic order, as unique's are; but unique over
+    columns compares them one by one in Python-level loops, which cost ~0.25 s of a Maze-L1
+    round's 2.7 s (three contexts of ~12k transitions)."""
     rows = context if context.dim() > 1 else context.unsqueeze(0)
     group = torch.zeros(rows.shape[1], dtype=torch.long)
     if rows.shape[1] == 0:
@@ -822,19 +810,19 @@ class EffectEstimator:
                 for name, parameter in self.base.named_parameters():
                     parameter.copy_(fitted[name])
             return
-        steps, rate, cold = config.base_steps, config.base_learning_rate, True
+        steps = config.base_steps
         if warm_start is not None:
             largest = max(self.data.num_codes, len(warm_start.observed))
             self.base.warm_start(
                 warm_start, self.data.observed, classes_are_codes=largest <= config.max_classes
             )
-            steps, rate, cold = config.warm_steps, config.learning_rate, False
+            steps = config.warm_steps
         masks = self._random_code_dropout
         if members is not None:
             self.base = self.base.select(list(members))
             masks = self._dropout_of(list(members))
         fitted_members = torch.arange(config.ensemble) if members is None else torch.tensor(members)
-        self._base_optimizer = self._fit(self.base, fitted_members, masks, steps, rate, cold)
+        self._base_optimizer = self._fit(self.base, fitted_members, masks, steps)
 
     def support(self, codes: np.ndarray) -> int:
         """Held-out episodes whose history (before their last transition) holds any of
@@ -892,43 +880,27 @@ class EffectEstimator:
         members: torch.Tensor,
         masks,
         steps: int,
-        learning_rate: float,
-        from_scratch: bool = False,
         optimizer_state: dict[str, Any] | None = None,
     ) -> torch.optim.Adam:
-        """Adam at `learning_rate` on minibatches of training episodes whose order depends only
-        on the seed, so every model fine-tuned for the same number of steps sees the same
-        batches. A fit `from_scratch` instead takes every training episode at each step when
-        they hold at most `batch_transitions` predicted transitions (a first round's pool),
-        and its rate falls linearly towards 0. Later rounds' warm-started fits keep
-        minibatches: on their larger pools a whole-set step cost several minibatch steps
-        (Maze-L3 rounds of 1000 steps: 17-25 s against 1.1-3.4 s). Model k stands for
-        ensemble member `members[k]` and skips the episodes held out for it.
+        """Adam on minibatches of training episodes; the minibatch order depends only on the
+        seed, so every model fine-tuned for the same number of steps sees the same batches.
+        Model k stands for ensemble member `members[k]` and skips the episodes held out for it.
         `optimizer_state` continues an earlier fit's Adam moments."""
         # foreach: one multi-tensor update for all parameters, the same arithmetic (the
         # per-tensor default is slower on these small tensors)
-        optimizer = torch.optim.Adam(model.parameters(), lr=learning_rate, foreach=True)
+        optimizer = torch.optim.Adam(model.parameters(), lr=self.config.learning_rate, foreach=True)
         if optimizer_state is not None:
             optimizer.load_state_dict(optimizer_state)
-            for group in optimizer.param_groups:  # the state holds the earlier fit's rate
-                group["lr"] = learning_rate
         generator = torch.Generator().manual_seed(self.config.seed + 1)
         train = self.data.fit_episodes
         if len(train) == 0:  # nothing needs the history: every ATE is 0
             return optimizer
-        predicted = int(self.data.predicted[train].sum())
-        mean_length = predicted / len(train)
+        mean_length = float(self.data.predicted[train].sum(dim=1).float().mean())
         by_length = max(1, round(self.config.batch_transitions / max(mean_length, 1.0)))
         size = min(self.config.batch_episodes, by_length, len(train))
-        whole = from_scratch and predicted <= self.config.batch_transitions
-        episodes, weights = train, self.data.fit_weights(train, members)
-        for step in range(steps):
-            if from_scratch:
-                for group in optimizer.param_groups:
-                    group["lr"] = learning_rate * (1 - step / steps)
-            if not whole:
-                episodes = train[torch.randint(len(train), (size,), generator=generator)]
-                weights = self.data.fit_weights(episodes, members)
+        for _ in range(steps):
+            episodes = train[torch.randint(len(train), (size,), generator=generator)]
+            weights = self.data.fit_weights(episodes, members)
             loss = model.loss(self.data, episodes, *masks(episodes), weights)
             optimizer.zero_grad()
             loss.sum().backward()
@@ -1056,8 +1028,7 @@ class EffectEstimator:
                 torch.full((arms,), member),
                 lambda batch: masks(batch)[:2],
                 self.config.finetune_steps,
-                self.config.learning_rate,
-                optimizer_state=_replicate_state(self._optimizer().state_dict(), arms, member),
+                _replicate_state(self._optimizer().state_dict(), arms, member),
             )
         with torch.no_grad():
             errors = model.errors(
