@@ -259,9 +259,10 @@ def test_t_hci_run_reports_ci_and_resumes_to_the_same_result(tmp_path):
     assert without_timing(in_process) == without_timing(reference)
     assert in_process["ci_blocking_s"] >= in_process["ci_wall_clock_s"] * 0.9
 
-    # A round due at once (first lag 0) runs in the worker beside the next update's rollout,
-    # which could not use its gate anyway: the same result as one process computing it on the
-    # spot, and as a first lag of one update (256 steps), whose gate applies at that update too.
+    # A round due at once (first lag 0) runs in the worker beside the update's training and
+    # the next rollout, neither of which could use its gate: the same result as one process
+    # computing it on the spot, and as a first lag of one update (256 steps), whose gate
+    # applies at that update too. (Whether the RL loop then waits depends on the machine.)
     def with_first_lag(lag: str) -> list[str]:
         args = list(T_HCI_FAST)
         args[args.index("--ci-first-lag") + 1] = lag
@@ -272,7 +273,7 @@ def test_t_hci_run_reports_ci_and_resumes_to_the_same_result(tmp_path):
         tmp_path, "one-core", "--total-steps", "2048", "--no-ci-async", *with_first_lag("0")
     )
     one_update = train(tmp_path, "one-update", "--total-steps", "2048", *with_first_lag("256"))
-    assert at_once["ci_rounds"] >= 1 and at_once["ci_blocking_s"] > 0
+    assert at_once["ci_rounds"] >= 1
     assert without_timing(at_once) == without_timing(one_core) == without_timing(one_update)
     applied = [
         [row.split(",")[:2] + row.split(",")[9:10] for row in rows[1:]]
