@@ -234,7 +234,9 @@ class _Computed:
 class _WorkerOrHere:
     """A round given to a worker that was still starting up: if by the time the gate is
     needed the worker has not started on it (it is still not ready), the round is computed
-    here instead, the same round with the same result (the worker's copy is dropped)."""
+    here instead, the same round with the same result. The worker still computes its queued
+    copy once up, and its result is dropped: one round's compute on the other core, against
+    the RL loop waiting for the whole round at its start."""
 
     queued: Any  # the worker's AsyncResult
     worker: CIWorker
@@ -342,7 +344,7 @@ class CausalInferenceLoop:
         round that is due (:meth:`due`), so that it runs beside that update. The pool and the
         gate are the same before and after the update (the RL loss never trains the gate), so
         the round is the one :meth:`step` would start after it, begun one update's training
-        earlier (~0.3 s less of the first round's wait on Maze)."""
+        earlier."""
         if self.due(global_step, solved):
             self._start(global_step)
 
@@ -436,7 +438,7 @@ class CausalInferenceLoop:
         # still starting up (a fresh interpreter importing torch) gets it queued, and the RL
         # loop computes it itself when the gate is due if the worker has not started on it by
         # then. Computing it here at once made the RL loop wait for the whole round in 2 of 10
-        # Maze L1-L2 runs (2.2 and 1.6 s).
+        # Maze L1-L2 runs (2.2 and 1.6 s, with a first fit since reverted; docs/experiments.md).
         if self._worker is not None:
             outcome = self._worker.pool.apply_async(run_ci_job, (job,))
             if not self._worker.ready.is_set():
