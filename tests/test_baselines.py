@@ -166,6 +166,60 @@ def test_wmg_fifo_evicts_the_oldest_memo_and_ages_shift_by_one():
     assert memory.split(first)[1].sum(dim=1).tolist() == [1, 1]  # one memo after one step
 
 
+def reference_wmg(memory, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """WMG step by step as the paper describes it, with torch's own Transformer layers (the
+    memory's weights copied in): every step embeds the Memos with their one-hot ages anew."""
+    width = memory.output_size
+    layers = []
+    for ours in memory.layers:
+        layer = torch.nn.TransformerEncoderLayer(
+            width, ours.heads, ours.ff_in.out_features, dropout=0.0, batch_first=True
+        )
+        with torch.no_grad():
+            layer.self_attn.in_proj_weight.copy_(ours.qkv.weight)
+            layer.self_attn.in_proj_bias.copy_(ours.qkv.bias)
+        layer.self_attn.out_proj.load_state_dict(ours.out.state_dict())
+        layer.linear1.load_state_dict(ours.ff_in.state_dict())
+        layer.linear2.load_state_dict(ours.ff_out.state_dict())
+        layer.norm1.load_state_dict(ours.norm_attention.state_dict())
+        layer.norm2.load_state_dict(ours.norm_ff.state_dict())
+        layers.append(layer)
+    memos, valid = memory.split(state)
+    outputs = []
+    for t in range(x.shape[1]):
+        tokens = torch.cat(
+            (
+                memory.core(x[:, t : t + 1]),
+                memory.memo(torch.cat((memos, memory.ages.expand(len(x), -1, -1)), dim=-1)),
+            ),
+            dim=1,
+        )
+        mask = ~torch.cat((torch.ones(len(x), 1, dtype=torch.bool), valid), dim=1)
+        for layer in layers:
+            tokens = layer(tokens, src_key_padding_mask=mask)
+        outputs.append(tokens[:, 0])
+        memos = torch.cat((torch.tanh(memory.write(tokens[:, :1])), memos[:, :-1]), dim=1)
+        valid = torch.cat((torch.ones(len(x), 1, dtype=torch.bool), valid[:, :-1]), dim=1)
+    return torch.stack(outputs, dim=1), memos, valid
+
+
+def test_wmg_computes_what_torch_transformer_layers_compute_step_by_step():
+    torch.manual_seed(0)
+    memory = make_memory("wmg", 16, 16, **{**SMALL, "wmg_layers": 2})
+    _, state = memory(torch.rand(3, 2, OBS), memory.initial_state(3))  # 2 of 4 slots valid
+    state = torch.cat((state[:2], memory.initial_state(1)))  # and an episode start
+    x = torch.rand(3, 6, OBS)  # longer than the FIFO: the first Memos are evicted
+    outputs, new_state = memory(x, state)
+    expected, memos, valid = reference_wmg(memory, x, state)
+    assert torch.allclose(outputs, expected, atol=1e-5)
+    ours_memos, ours_valid = memory.split(new_state)
+    assert torch.allclose(ours_memos, memos, atol=1e-5) and torch.equal(ours_valid, valid)
+    _, short_state = memory(x[:, :1], state)  # fewer steps than slots: old Memos shift
+    _, memos, valid = reference_wmg(memory, x[:, :1], state)
+    ours_memos, ours_valid = memory.split(short_state)
+    assert torch.allclose(ours_memos, memos, atol=1e-5) and torch.equal(ours_valid, valid)
+
+
 def test_wmg_babyai_factors_are_the_visible_objects():
     obs = torch.zeros(151)
     view = obs[:147].view(7, 7, 3)  # minigrid's (x, y, channel)
