@@ -149,6 +149,7 @@ def test_presets_name_the_papers_methods_and_are_valid():
         (["--grid", "{dir}/bad.toml"], "not valid TOML"),
         (["--grid", "{dir}/env.toml"], "unknown environment id"),
         (["--grid", "{dir}/key.toml"], "unknown settings ['total_step']"),
+        (["--grid", "{dir}/progress.toml"], "['progress'] (set by the grid itself)"),
         (["--grid", "{dir}/seed.toml"], "'seeds' must be a non-empty list of int"),
         (["--grid", "{dir}/over.toml"], "method_overrides names 'gru', which is not in the grid"),
         (["--grid", "{dir}/ok.toml", "--workers", "999"], "exceeds this machine's"),
@@ -160,6 +161,9 @@ def test_bad_bench_input_is_one_line(tmp_path, capsys, argv, fragment):
     (tmp_path / "env.toml").write_text(base + 'envs = ["thci/NoSuchMaze-v0"]\n')
     (tmp_path / "key.toml").write_text(
         base + 'envs = ["thci/PaperMaze-L1-v0"]\n[train]\ntotal_step = 5\n'
+    )
+    (tmp_path / "progress.toml").write_text(
+        base + 'envs = ["thci/PaperMaze-L1-v0"]\n[train]\nprogress = false\n'
     )
     (tmp_path / "seed.toml").write_text('envs = ["x"]\nmethods = ["lstm"]\nseeds = []\n')
     (tmp_path / "ok.toml").write_text(base + 'envs = ["thci/PaperMaze-L1-v0"]\n')

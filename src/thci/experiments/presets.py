@@ -41,8 +41,9 @@ from typing import Any, get_args
 from thci.config import Algo, Method, TrainConfig
 from thci.errors import ThciError
 
-# Fields the grid itself sets for each run: they may not appear in `train` or `env_overrides`.
-GRID_FIELDS = frozenset({"env", "method", "algo", "seed", "run_dir", "resume"})
+# Fields the grid itself sets for each run: they may not appear in `train` or `env_overrides`
+# (progress is always off: the runs of a bench share one terminal).
+GRID_FIELDS = frozenset({"env", "method", "algo", "seed", "run_dir", "resume", "progress"})
 TRAIN_FIELDS = frozenset(f.name for f in dataclasses.fields(TrainConfig)) - GRID_FIELDS
 
 PAPER_MAZE = tuple(f"thci/PaperMaze-L{k}-v0" for k in range(1, 5))
