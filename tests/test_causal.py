@@ -171,6 +171,28 @@ def test_reward_target_predicts_only_the_transitions_whose_reward_varies_in_thei
     assert torch.equal(off.predicted, off.valid)
 
 
+def test_an_episode_keeps_its_fold_as_the_pool_slides():
+    """A later round warm-starts member m: the episodes it held out must stay held out for it.
+    The pool keeps the run's last 60 episodes; two rounds 35 episodes apart share 25."""
+    pool = ReplayPool(capacity=60)
+    folds = []
+    for number in range(95):
+        pool.add(PoolEpisode(np.array([number % 5, 9]), np.zeros(1), np.ones(1, np.float32)))
+        if number + 1 in (60, 95):
+            arrays = pool.arrays()
+            assert arrays.first_episode == number + 1 - 60
+            folds.append(CodeData(arrays, PredictorConfig(ensemble=4), num_actions=4).fold)
+    assert torch.equal(folds[0][35:], folds[1][:25])
+    for fold in folds:  # dealt evenly, and not in a fixed cycle
+        assert set(torch.bincount(fold, minlength=4).tolist()) <= {14, 15, 16}
+    assert not torch.equal(folds[0][:4], folds[0][4:8])
+    # a single predictor's held-out share stays put too
+    config = PredictorConfig(ensemble=1, holdout_fraction=0.25)
+    first = CodeData(pad_episodes(list(pool.episodes)[:40], first_episode=35), config, 4)
+    second = CodeData(pool.arrays(), config, 4)
+    assert torch.equal(first.fold, second.fold[:40]) and 5 <= len(second.test) <= 25
+
+
 def test_transitions_are_grouped_by_context_as_unique_over_columns_groups_them():
     generator = torch.Generator().manual_seed(0)
     for rows, high in ((1, 5), (2, 7), (3, 10**9)):

@@ -203,6 +203,7 @@ def assert_stop_and_resume_matches(
     if round_in_flight:
         checkpoint = torch.load(tmp_path / "split" / "checkpoint.pt", weights_only=True)
         assert checkpoint["ci"]["round_in_flight"] is not None
+        assert checkpoint["ci"]["pool"]["first_episode"] > 0  # the pool has slid
     resume = ["--run-dir", str(tmp_path / "split"), "--resume", "--total-steps", "4096"]
     assert run_cli(["train", *resume, *FAST, *args]) == 0
     resumed = json.loads((tmp_path / "split" / "summary.json").read_text())
@@ -226,6 +227,8 @@ T_HCI_FAST = [
     "30",
     "--ci-warm-steps",
     "10",
+    "--ci-pool-episodes",
+    "50",  # slides within the run: folds must follow the episodes across a resume
     "--seed",
     "5",
 ]

@@ -561,7 +561,7 @@ class CausalInferenceLoop:
     def state_dict(self) -> dict[str, Any]:
         """Pool, pending episodes, discretizer and schedule (tensors and plain values only)."""
         episodes = list(self.pool.episodes)
-        arrays = pad_episodes(episodes) if episodes else None
+        arrays = self.pool.arrays() if episodes else None
         labelled = bool(episodes) and episodes[0].causal is not None
         return {
             "pool": None
@@ -608,6 +608,7 @@ class CausalInferenceLoop:
         self.pool = ReplayPool(self.config.ci_pool_episodes)
         pool = state["pool"]
         if pool is not None:
+            self.pool.num_added = int(pool.get("first_episode", 0))
             for i, length in enumerate(pool["lengths"].tolist()):
                 self.pool.add(
                     PoolEpisode(
@@ -641,7 +642,7 @@ class CausalInferenceLoop:
             )
         pending = state["round_in_flight"]
         if pending is not None:
-            pool = PoolArrays(**{k: v.numpy() for k, v in pending["pool"].items()})
+            pool = _arrays_from_tensors(pending["pool"])
             self._submit(self.make_job(pool), pending["started_step"], pending["apply_step"])
 
 
@@ -686,10 +687,19 @@ def planted_ci_job(
     )
 
 
-def _arrays_to_tensors(arrays: PoolArrays) -> dict[str, torch.Tensor]:
+def _arrays_to_tensors(arrays: PoolArrays) -> dict[str, Any]:
     return {
         "codes": torch.as_tensor(arrays.codes),
         "actions": torch.as_tensor(arrays.actions),
         "rewards": torch.as_tensor(arrays.rewards),
         "lengths": torch.as_tensor(arrays.lengths),
+        "first_episode": arrays.first_episode,
     }
+
+
+def _arrays_from_tensors(tensors: dict[str, Any]) -> PoolArrays:
+    """Inverse of :func:`_arrays_to_tensors` (checkpoints from before first_episode: 0)."""
+    return PoolArrays(
+        **{k: tensors[k].numpy() for k in ("codes", "actions", "rewards", "lengths")},
+        first_episode=int(tensors.get("first_episode", 0)),
+    )

@@ -86,8 +86,10 @@ at the history, so it favours no history observation over another.
 
 Confidence and cross-fitting. p_ζ is an ensemble of M independently initialized predictors
 (`ensemble`, fitted side by side in one batched pass, each with its own random
-interventions). The pool's episodes are dealt into M folds and member m is fitted without
-fold m and measured on it, so every episode is held out once: four times the held-out data of a
+interventions). The pool's episodes are dealt into M folds (by the run's episode number, so an
+episode stays in its fold in later rounds, whose warm-started members must not be measured on
+what they were fitted on) and member m is fitted without fold m and measured on it, so every
+episode is held out once: four times the held-out data of a
 25% split at the same cost, which matters on early pools where few episodes show the reward.
 The ATE is the mean D_e over all episodes, and its confidence interval mean ± z·SE
 (`confidence_z`) takes the larger of two variance estimates: the spread of D_e over episodes,
@@ -236,16 +238,20 @@ class CodeData:
         self.next_class = self.ids[:, 1:] % self.num_classes
 
         self.num_actions = num_actions
-        generator = torch.Generator().manual_seed(config.seed)
-        order = torch.randperm(len(self.ids), generator=generator)
-        self.fold = torch.full((len(order),), -1, dtype=torch.long)
+        # Folds are dealt by the run's episode number, not the position in this pool: a later
+        # round warm-starts member m, which must not then be measured on episodes it was
+        # fitted on in an earlier round.
+        numbers = np.arange(len(self.ids), dtype=np.int64) + pool.first_episode
+        everyone = torch.arange(len(self.ids))
         if config.ensemble >= 2:
-            self.fold[order] = torch.arange(len(order)) % config.ensemble
-            self.train = order  # every episode is fitted on by all members but one
+            self.fold = torch.as_tensor(deal_folds(numbers, config.ensemble, config.seed))
+            self.train = everyone  # every episode is fitted on by all members but one
         else:
-            num_test = max(1, round(config.holdout_fraction * len(order)))
-            self.fold[order[:num_test]] = 0
-            self.train = order[num_test:] if num_test < len(order) else order
+            held = _episode_uniforms(numbers, config.seed) < config.holdout_fraction
+            if not held.any():  # a tiny pool: hold out one episode all the same
+                held[np.argmin(_episode_uniforms(numbers, config.seed))] = True
+            self.fold = torch.where(torch.as_tensor(held), 0, -1)
+            self.train = everyone[self.fold < 0] if not held.all() else everyone
         self.test = (self.fold >= 0).nonzero().flatten()  # held out for some member
         self.predicted = self._needs_history(config)
         # the fit draws its episodes among those with a transition to predict
@@ -294,6 +300,34 @@ class CodeData:
         codes = np.asarray(codes, dtype=np.int64)
         inside = np.isin(codes, self.observed)
         return np.searchsorted(self.observed, codes[inside])
+
+
+def _episode_keys(numbers: np.ndarray, seed: int) -> np.ndarray:
+    """(N,) uint64 pseudo-random keys of episode numbers (SplitMix64 of number and seed)."""
+    with np.errstate(over="ignore"):  # the mixing wraps around 2^64 by design
+        z = numbers.astype(np.uint64) + np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        return z ^ (z >> np.uint64(31))
+
+
+def _episode_uniforms(numbers: np.ndarray, seed: int) -> np.ndarray:
+    """(N,) float64 in [0, 1), a fixed pseudo-random draw per episode number."""
+    return (_episode_keys(numbers, seed) >> np.uint64(11)).astype(np.float64) / 2.0**53
+
+
+def deal_folds(numbers: np.ndarray, members: int, seed: int) -> np.ndarray:
+    """(N,) int64 fold in 0 … members-1 of each episode number: numbers are cut into blocks of
+    `members` consecutive episodes and each block is dealt one per fold in a pseudo-random
+    order, so an episode keeps its fold in every pool that holds it and the folds of a run of
+    consecutive episodes differ in size by at most 2."""
+    if len(numbers) == 0:
+        return numbers.copy()
+    start = numbers.min() // members * members
+    blocks = (numbers.max() - start) // members + 1
+    keys = _episode_keys(start + np.arange(blocks * members), seed).reshape(blocks, members)
+    folds = np.argsort(np.argsort(keys, axis=1), axis=1).reshape(-1)  # rank within the block
+    return folds[numbers - start]
 
 
 @dataclass(frozen=True)

@@ -45,12 +45,16 @@ class PoolArrays:
         actions: (E, L) int64; padding 0.
         rewards: (E, L) float32; padding 0.
         lengths: (E,) int64, steps per episode.
+        first_episode: the run's number of episode 0 (episode i is the run's episode
+            first_episode + i), so that what is dealt per episode (the predictor's
+            cross-fitting folds) stays with it as the pool slides.
     """
 
     codes: np.ndarray
     actions: np.ndarray
     rewards: np.ndarray
     lengths: np.ndarray
+    first_episode: int = 0
 
     @property
     def valid(self) -> np.ndarray:
@@ -58,8 +62,9 @@ class PoolArrays:
         return np.arange(self.actions.shape[1])[None, :] < self.lengths[:, None]
 
 
-def pad_episodes(episodes: list[PoolEpisode]) -> PoolArrays:
-    """Stack episodes into padded arrays."""
+def pad_episodes(episodes: list[PoolEpisode], first_episode: int = 0) -> PoolArrays:
+    """Stack episodes (the run's episodes first_episode, first_episode + 1, …) into padded
+    arrays."""
     lengths = np.array([e.length for e in episodes], dtype=np.int64)
     num, max_len = len(episodes), int(lengths.max()) if len(episodes) else 0
     codes = np.full((num, max_len + 1), -1, dtype=np.int64)
@@ -69,7 +74,7 @@ def pad_episodes(episodes: list[PoolEpisode]) -> PoolArrays:
         codes[i, : e.length + 1] = e.codes
         actions[i, : e.length] = e.actions
         rewards[i, : e.length] = e.rewards
-    return PoolArrays(codes, actions, rewards, lengths)
+    return PoolArrays(codes, actions, rewards, lengths, first_episode)
 
 
 class ReplayPool:
@@ -85,6 +90,8 @@ class ReplayPool:
         self.observations: dict[int, np.ndarray] = {}
         self.num_rewarded = 0
         """Episodes in the pool with a non-zero reward somewhere."""
+        self.num_added = 0
+        """Episodes ever added (the pool holds the last len(self) of them)."""
 
     def __len__(self) -> int:
         return len(self.episodes)
@@ -95,6 +102,7 @@ class ReplayPool:
             self.num_rewarded -= bool(np.any(self.episodes[0].rewards != 0))
         self.num_rewarded += bool(np.any(episode.rewards != 0))
         self.episodes.append(episode)
+        self.num_added += 1
         if observations is not None:
             # Only the episode's distinct codes are looked up, not every step.
             codes, first = np.unique(episode.codes, return_index=True)
@@ -109,4 +117,4 @@ class ReplayPool:
 
     def arrays(self) -> PoolArrays:
         """The pool's episodes as padded arrays."""
-        return pad_episodes(list(self.episodes))
+        return pad_episodes(list(self.episodes), self.num_added - len(self.episodes))
