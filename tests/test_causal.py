@@ -129,6 +129,45 @@ def test_both_history_summaries_credit_the_same_positions(embeddings):
     assert gradients[0].abs().sum() > 0
 
 
+@pytest.mark.parametrize("target", ["reward", "dynamics"])
+def test_the_fits_transition_table_gives_the_loss_and_gradients_of_the_episode_tensors(target):
+    """The fit gathers its batches from a table of predicted transitions laid out once
+    (`transition_loss`); it must give bit for bit the loss and gradients that cutting them out
+    of the episode tensors gives (`loss`), with rare codes hidden, repeated episodes in a
+    batch, per-episode masks of whole codes, and tied embeddings. Short episodes, so that the
+    dynamics target too predicts few transitions per episode (the regime the table is for)."""
+    planted = generate_planted_episodes(
+        40, num_causal=1, num_episodes=300, episode_length=4, seed=4
+    )
+    config = PredictorConfig(target=target, base_steps=0, min_code_episodes=38, seed=1)
+    estimator = EffectEstimator(pad_episodes(planted.episodes), 4, config)
+    data, model = estimator.data, estimator.base
+    assert 0 < int((~data.frequent).sum()) < data.num_codes  # some codes are rare
+    torch.manual_seed(2)
+    with torch.no_grad():
+        for parameter in model.parameters():
+            parameter.normal_()
+        model.embed[:, 3] = model.embed[:, 5]  # a tie
+    table = data.predicted_transitions()
+    episodes = data.fit_episodes[torch.randint(len(data.fit_episodes), (64,))]
+    assert 0 < int(table.count[episodes].sum()) <= 4 * len(episodes)
+    _, masked_codes = estimator._random_code_dropout(episodes)
+    weights = data.fit_weights(episodes, torch.arange(config.ensemble))
+    masked = masked_codes.gather(2, data.ids[episodes].expand(config.ensemble, -1, -1))
+
+    losses, gradients = [], []
+    for loss in (
+        model.loss(data, episodes, masked, masked_codes, weights),
+        model.transition_loss(data, table, episodes, masked_codes, weights),
+    ):
+        losses.append(loss.detach())
+        gradients.append(torch.autograd.grad(loss.sum(), list(model.parameters())))
+    assert torch.equal(losses[0], losses[1])
+    for first, second in zip(*gradients, strict=True):
+        assert torch.equal(first, second)
+    assert gradients[0][0].abs().sum() > 0  # the embeddings take part
+
+
 def test_reward_target_predicts_only_the_transitions_whose_reward_varies_in_their_context():
     """A transition is explained when at least `explained_min_count` *other* transitions share
     a context of its own (its step; its step and next observation; its step and

@@ -203,6 +203,39 @@ class PredictorConfig:
     seed: int = 0
 
 
+@dataclass(frozen=True)
+class PredictedTransitions:
+    """A pool's predicted transitions laid out once for the fit's minibatches
+    (:meth:`BatchedPredictor.transition_loss`): a fitting step gathers its batch's transitions
+    with one indexing instead of cutting them out of (B, L) episode tensors, and their history
+    positions come ready, latest first (:meth:`BatchedPredictor.bag_max`). Built where
+    transitions per episode are few (the reward target): it holds L positions per transition.
+
+    Attributes:
+        slots: (E, P) the transitions of each episode (rows of the tensors below) in step
+            order, -1 after its last.
+        count: (E,) predicted transitions of each episode. length: (E,) real ones.
+        integers: (N, 2L + 5) per transition: the dense ids of o_L … o_1 (latest first: where
+            masks are looked up), their embedding rows (-1 at o_t and after, and for rare
+            codes), then step, current, following and action as in :class:`Transitions`, and
+            the class of o_{t+1} (see :meth:`gather`).
+        reward: (N,) r_t (divided by max |r|).
+    """
+
+    slots: torch.Tensor
+    count: torch.Tensor
+    length: torch.Tensor
+    integers: torch.Tensor
+    reward: torch.Tensor
+
+    def gather(self, chosen: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """history codes (n, L), history rows (n, L), step, current, following, action and
+        next class (n,) of transitions `chosen` (n,)."""
+        positions = (self.integers.shape[1] - 5) // 2
+        codes, rows, rest = self.integers[chosen].split([positions, positions, 5], dim=1)
+        return codes, rows, *rest.unbind(1)
+
+
 class CodeData:
     """A pool's episodes as tensors with codes mapped to dense ids 0 … |Ô|-1.
 
@@ -287,6 +320,32 @@ class CodeData:
         pairs = torch.unique(episode[real] * self.num_codes + self.ids[real])
         return torch.bincount(pairs % self.num_codes, minlength=self.num_codes)
 
+    def predicted_transitions(self) -> PredictedTransitions:
+        """The predicted transitions of every episode, laid out for the fit's minibatches."""
+        episodes, steps = self.predicted.nonzero(as_tuple=True)  # episode by episode
+        counts = self.predicted.sum(dim=1)
+        slots = torch.full((len(counts), max(int(counts.max()), 1)), -1, dtype=torch.long)
+        first = (torch.cumsum(counts, 0) - counts)[episodes]
+        slots[episodes, torch.arange(len(episodes)) - first] = torch.arange(len(episodes))
+        positions = self.ids.shape[1] - 1  # o_1 … o_L
+        codes, rows = self.ids[episodes, :positions], self.embed_ids[episodes, :positions]
+        later = torch.arange(positions).unsqueeze(0) >= steps.unsqueeze(1)
+        rows = rows.masked_fill(later | (rows == self.num_codes), -1)
+        per_step = (
+            steps,
+            self.embed_ids[episodes, steps],  # o_t
+            self.embed_ids[episodes, steps + 1],  # o_{t+1}
+            self.actions[episodes, steps],
+            self.next_class[episodes, steps],
+        )
+        return PredictedTransitions(
+            slots=slots,
+            count=counts,
+            length=self.valid.sum(dim=1),
+            integers=torch.cat((codes.flip(1), rows.flip(1), torch.stack(per_step, dim=1)), 1),
+            reward=self.rewards[episodes, steps],
+        )
+
     def held_out(self, member: int) -> torch.Tensor:
         """Index tensor of the episodes member `member` is measured on (not fitted on)."""
         return (self.fold == member).nonzero().flatten()
@@ -343,6 +402,26 @@ class PredictorState:
 
     observed: np.ndarray
     parameters: dict[str, torch.Tensor]
+
+
+@dataclass(frozen=True)
+class Transitions:
+    """The n transitions (o_t, a_t) -> (o_{t+1}, r_t) that a pass predicts, flat.
+
+    Attributes:
+        episode: (n,) the row of each transition's episode in the batch.
+        step: (n,) t - 1, its 0-based index in the episode.
+        current, following: (n,) embedding rows of o_t and o_{t+1}.
+        action: (n,) a_t.
+        steps: rows of the step table: the longest episode of the batch.
+    """
+
+    episode: torch.Tensor
+    step: torch.Tensor
+    current: torch.Tensor
+    following: torch.Tensor
+    action: torch.Tensor
+    steps: int
 
 
 class BatchedPredictor(nn.Module):
@@ -495,8 +574,18 @@ class BatchedPredictor(nn.Module):
         # Only the n real transitions are gathered into the first layer's input (K, n, ·).
         rows, cols = valid.nonzero(as_tuple=True)
         history = self._history(ids[:, :steps], masked[:, :, :steps], rows, cols)  # (K, n, d)
+        transitions = Transitions(
+            rows, cols, ids[rows, cols], ids[rows, cols + 1], actions[rows, cols], steps
+        )
+        return self.predict(history, transitions, masked_codes)
+
+    def predict(
+        self, history: torch.Tensor, transitions: Transitions, masked_codes: torch.Tensor
+    ) -> torch.Tensor:
+        """(K, n, out) outputs for `transitions` given their history summaries (K, n, d) and
+        the intervened set `masked_codes` (K, 1 or B, |Ô|) (see :meth:`forward`)."""
         weights = self._w1
-        others = self._table_inputs(weights, ids, rows, cols, actions, masked_codes)  # (K, n, h)
+        others = self._table_inputs(weights, transitions, masked_codes)  # (K, n, h)
         hidden = torch.relu(torch.baddbmm(others, history, weights["history"]))
         if self.w2.shape[-1] == 1:
             # the reward target's single output: a batched matrix-vector product through bmm
@@ -519,7 +608,7 @@ class BatchedPredictor(nn.Module):
             rows, cols: (n,) episode and step t - 1 (0-based) of each transition.
         """
         num_models, num_rows, d = self.embed.shape
-        if len(rows) > 4 * len(ids):
+        if len(rows) > 4 * len(ids):  # as _few tells
             # Many transitions per episode: one running max along each episode, read one step
             # back (h_{t-1} excludes o_t). Laid out (K, d, B, L) so that it runs along the
             # contiguous last dimension (~1.4x faster than along L in (K, B, L, d)). F.embedding's
@@ -533,25 +622,34 @@ class BatchedPredictor(nn.Module):
         else:
             # A few transitions per episode (the reward target's predicted ones, ~1.4 per
             # episode on Maze pools): the max over each transition's own history, without a
-            # running max (400 steps on a Maze-L1 pool: 3.1 s, against 6.8 s with it), as one
-            # max-mode embedding_bag per (model, transition) over its L positions. A removed or
-            # later position reads the padding row, which the bag skips (an empty bag is the
-            # zero vector); the backward pass adds each gradient to the row of its maximum
-            # only, never touching the (K, n, L, d) embeddings that a gather-then-max builds
-            # (its max over L was the costliest op of a fitting step; same values and
-            # gradients, 0.4 ms against 0.8 ms per step on a Maze-L1 batch). The bag keeps the
-            # first of tied maxima, and positions are read from the end, so that a tie credits
-            # the same (latest) position as cummax does.
-            padding = num_models * num_rows
-            table = torch.cat((self.embed.reshape(padding, d), self.embed.new_zeros(1, d)))
+            # running max (400 steps on a Maze-L1 pool: 3.1 s, against 6.8 s with it).
             after = torch.arange(ids.shape[1]).unsqueeze(0) >= cols.unsqueeze(1)  # (n, L)
-            index = ids[rows] + (torch.arange(num_models) * num_rows).view(-1, 1, 1)
-            index = index.masked_fill(after | masked[:, rows], padding).flip(2)  # (K, n, L)
-            history = nn.functional.embedding_bag(
-                index.view(-1, index.shape[-1]), table, mode="max", padding_idx=padding
-            )
-            return history.view(num_models, -1, d)
+            rows_of = ids[rows].masked_fill(after, -1).flip(1)  # -1: a later position
+            return self.bag_max(rows_of, masked[:, rows].flip(2))
         return history.masked_fill(torch.isinf(history), 0.0)
+
+    def bag_max(self, rows_of: torch.Tensor, masked: torch.Tensor) -> torch.Tensor:
+        """History summaries (K, n, d) of n transitions from their positions, latest first:
+        the max of the embedding rows `rows_of` (n, L) (-1: no observation there) that are not
+        `masked` (K, n, L), the zero vector when none is left.
+
+        One max-mode embedding_bag per (model, transition): a removed position reads the
+        padding row, which the bag skips (an empty bag is the zero vector), and the backward
+        pass adds each gradient to the row of its maximum only, never touching the (K, n, L, d)
+        embeddings that a gather-then-max builds (its max over L was the costliest op of a
+        fitting step; same values and gradients, 0.4 ms against 0.8 ms per step on a Maze-L1
+        batch). The bag keeps the first of tied maxima, and positions come latest first, so
+        that a tie credits the same (latest) position as the running max (cummax) does.
+        """
+        num_models, num_rows, d = self.embed.shape
+        padding = num_models * num_rows
+        table = torch.cat((self.embed.reshape(padding, d), self.embed.new_zeros(1, d)))
+        index = rows_of + (torch.arange(num_models) * num_rows).view(-1, 1, 1)  # (K, n, L)
+        index = index.masked_fill(masked | (rows_of < 0), padding)
+        history = nn.functional.embedding_bag(
+            index.view(-1, index.shape[-1]), table, mode="max", padding_idx=padding
+        )
+        return history.view(num_models, -1, d)
 
     @property
     def _w1(self) -> dict[str, torch.Tensor]:
@@ -559,13 +657,7 @@ class BatchedPredictor(nn.Module):
         return dict(zip(self.inputs, self.w1.split(self.input_widths, dim=1), strict=True))
 
     def _table_inputs(
-        self,
-        weights: dict[str, torch.Tensor],
-        ids: torch.Tensor,
-        rows: torch.Tensor,
-        cols: torch.Tensor,
-        actions: torch.Tensor,
-        masked_codes: torch.Tensor,
+        self, weights: dict[str, torch.Tensor], transitions: Transitions, masked_codes: torch.Tensor
     ) -> torch.Tensor:
         """b1 + the first layer (`weights`, :attr:`_w1`) applied to every input but the
         history, (K, n, h).
@@ -578,11 +670,10 @@ class BatchedPredictor(nn.Module):
         fitting step; with this and F.embedding for the history, a first-round CI job on
         eleven Maze pools (1000 steps, one thread) took 13.0-16.4 s instead of 16.5-19.7 s.
         """
-        steps = actions.shape[1]
         # o_t (current) and o_{t+1} (following) are never masked; only the codes of this batch
         # are projected, which keeps the cost bounded on pools of thousands of codes.
         used, which = torch.unique(
-            torch.stack((ids[rows, cols], ids[rows, cols + 1])), return_inverse=True
+            torch.stack((transitions.current, transitions.following)), return_inverse=True
         )
         codes = self.embed[:, used]  # (K, U, d)
         # The model is told *which* codes the intervention masks (not whether they occurred in
@@ -593,16 +684,16 @@ class BatchedPredictor(nn.Module):
         )  # (K, 1|B, h)
         # The step embedding lets the predictor know *when* an outcome arrives (e.g. a reward
         # at the horizon); b1 and an intervened set shared by every episode ride along with it.
-        when = torch.bmm(self.step_embed[:, :steps], weights["when"]) + self.b1
+        when = torch.bmm(self.step_embed[:, : transitions.steps], weights["when"]) + self.b1
         if intervened.shape[1] == 1:
             when = when + intervened
         # (table (K, rows, h), row of each transition (n,)) of each input but the history
         tables = {
             "current": lambda: (torch.bmm(codes, weights["current"]), which[0]),
             "following": lambda: (torch.bmm(codes, weights["following"]), which[1]),
-            "action": lambda: (weights["action"], actions[rows, cols]),
-            "when": lambda: (when, cols),
-            "intervened": lambda: (intervened, rows),
+            "action": lambda: (weights["action"], transitions.action),
+            "when": lambda: (when, transitions.step),
+            "intervened": lambda: (intervened, transitions.episode),
         }
         chosen = [tables[name]() for name in self.inputs[1:]]
         if intervened.shape[1] == 1:
@@ -653,7 +744,33 @@ class BatchedPredictor(nn.Module):
             data, episodes, masked, masked_codes, data.predicted[episodes]
         )
         step_weights = weights.unsqueeze(-1).expand(-1, -1, valid.shape[1])[:, valid]
-        return (per_step * step_weights).sum(dim=1) / step_weights.sum(dim=1).clamp(min=1)
+        return _weighted_mean(per_step, step_weights)
+
+    def transition_loss(
+        self,
+        data: CodeData,
+        table: PredictedTransitions,
+        episodes: torch.Tensor,
+        masked_codes: torch.Tensor,
+        weights: torch.Tensor,
+    ) -> torch.Tensor:
+        """:meth:`loss` where the masks are whole codes `masked_codes` (K, B, |Ô|), with the
+        batch's transitions gathered from `table` (:meth:`CodeData.predicted_transitions`):
+        the same loss, bit for bit, in fewer operations. Only for batches of few transitions
+        per episode (at most 4 on average, the history bag's regime)."""
+        slots = table.slots[episodes]  # (B, P)
+        present = slots >= 0
+        chosen = slots[present]  # (n,) the batch's transitions, episode by episode
+        episode = present.nonzero(as_tuple=True)[0]
+        codes, rows, step, current, following, action, next_class = table.gather(chosen)
+        masked = masked_codes[:, episode].gather(2, codes.expand(len(masked_codes), -1, -1))
+        history = self.bag_max(rows, masked)  # masked: (K, n, L) positions of masked codes
+        steps = int(table.length[episodes].max())
+        transitions = Transitions(episode, step, current, following, action, steps)
+        out = self.predict(history, transitions, masked_codes & data.frequent)
+        targets = next_class if self.target == "dynamics" else action
+        _, per_step = self._outcome_terms(out, table.reward[chosen], targets, data.reward_weight)
+        return _weighted_mean(per_step, weights[:, episode])
 
     def _terms(
         self,
@@ -675,28 +792,52 @@ class BatchedPredictor(nn.Module):
         hidden = masked[:, :, : steps + 1] | (ids == data.num_codes)
         masked_codes = masked_codes & data.frequent
         out = self(ids, hidden, masked_codes, actions, valid)  # (K, n, out)
-        num_models = out.shape[0]
-        true_reward = data.rewards[episodes, :steps][valid].unsqueeze(0)
+        reward = data.rewards[episodes, :steps][valid]
         if self.target == "dynamics":
-            logits, reward = out[..., :-1] + self.logit_offset, out[..., -1]
-            target = data.next_class[episodes, :steps][valid].expand(num_models, -1)
+            targets = data.next_class[episodes, :steps][valid]
+        else:
+            targets = actions[valid]
+        return (*self._outcome_terms(out, reward, targets, data.reward_weight), valid)
+
+    def _outcome_terms(
+        self,
+        out: torch.Tensor,
+        reward: torch.Tensor,
+        targets: torch.Tensor,
+        reward_weight: float,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Errors (C, K, n) and loss terms (K, n) of outputs `out` (K, n, out) for transitions
+        with rewards `reward` (n,) and categorical `targets` (n,): the next observation's class
+        (dynamics) or the action (inverse; unused by the reward target)."""
+        num_models = out.shape[0]
+        true_reward = reward.unsqueeze(0)
+        if self.target == "dynamics":
+            logits, predicted = out[..., :-1] + self.logit_offset, out[..., -1]
             nll = nn.functional.cross_entropy(
-                logits.flatten(0, 1), target.flatten(), reduction="none"
-            ).view_as(reward)
-            squared = (reward - true_reward).pow(2)
-            return (
-                torch.stack((1 - torch.exp(-nll), 2 * squared)),
-                nll + data.reward_weight * squared,
-                valid,
-            )
+                logits.flatten(0, 1), targets.expand(num_models, -1).flatten(), reduction="none"
+            ).view_as(predicted)
+            squared = (predicted - true_reward).pow(2)
+            return torch.stack((1 - torch.exp(-nll), 2 * squared)), nll + reward_weight * squared
         if self.target == "reward":
             squared = (out[..., -1] - true_reward).pow(2)
-            return 2 * squared.unsqueeze(0), data.reward_weight * squared, valid
-        target = actions[valid].expand(num_models, -1)
+            return 2 * squared.unsqueeze(0), reward_weight * squared
         nll = nn.functional.cross_entropy(
-            (out + self.logit_offset).flatten(0, 1), target.flatten(), reduction="none"
+            (out + self.logit_offset).flatten(0, 1),
+            targets.expand(num_models, -1).flatten(),
+            reduction="none",
         ).view(num_models, -1)
-        return (1 - torch.exp(-nll)).unsqueeze(0), nll, valid
+        return (1 - torch.exp(-nll)).unsqueeze(0), nll
+
+
+def _few(counts: torch.Tensor) -> bool:
+    """Whether a batch of episodes with `counts` (B,) transitions to predict is in the history
+    bag's regime (at most 4 per episode on average; :meth:`BatchedPredictor._history`)."""
+    return int(counts.sum()) <= 4 * len(counts)
+
+
+def _weighted_mean(terms: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """(K,) the mean of each model's terms (K, n) weighed by `weights` (K, n)."""
+    return (terms * weights).sum(dim=1) / weights.sum(dim=1).clamp(min=1)
 
 
 def _others_agree(context: torch.Tensor, rewards: torch.Tensor, minimum: int) -> torch.Tensor:
@@ -884,10 +1025,11 @@ class EffectEstimator:
         assert self._base_optimizer is not None, "fitted elsewhere: no Adam state to continue"
         return self._base_optimizer
 
-    def _random_code_dropout(self, episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _random_code_dropout(self, episodes: torch.Tensor) -> tuple[None, torch.Tensor]:
         """Random interventions: whole codes removed from each episode's history at a rate
-        drawn per episode uniformly from [0, 1]. Returns the masked positions (M, B, L+1) and
-        the masked codes (M, B, |Ô|), drawn independently for each of the M members.
+        drawn per episode uniformly from [0, 1]. Returns None for the masked positions (whole
+        codes are masked wherever they occur, see :meth:`_fit`) and the masked codes
+        (M, B, |Ô|), drawn independently for each of the M members.
 
         Training the base predictor under random interventions of every size keeps it from
         leaning on any one frequent observation and makes heavily masked histories familiar,
@@ -897,17 +1039,14 @@ class EffectEstimator:
         generator, members = self._dropout_generator, self.config.ensemble
         shape = (members, len(episodes))
         rate = torch.rand(*shape, 1, generator=generator) * self.config.code_dropout
-        masked_codes = torch.rand(*shape, self.data.num_codes, generator=generator) < rate
-        ids = self.data.ids[episodes].expand(members, -1, -1)
-        return masked_codes.gather(2, ids), masked_codes
+        return None, torch.rand(*shape, self.data.num_codes, generator=generator) < rate
 
     def _dropout_of(self, members: list[int]):
         """:meth:`_random_code_dropout` for some members: drawn for all of them and sliced, so
         each member's draws are those of the whole ensemble's fit."""
 
-        def draw(episodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            masked, masked_codes = self._random_code_dropout(episodes)
-            return masked[members], masked_codes[members]
+        def draw(episodes: torch.Tensor) -> tuple[None, torch.Tensor]:
+            return None, self._random_code_dropout(episodes)[1][members]
 
         return draw
 
@@ -922,6 +1061,8 @@ class EffectEstimator:
         """Adam on minibatches of training episodes; the minibatch order depends only on the
         seed, so every model fine-tuned for the same number of steps sees the same batches.
         Model k stands for ensemble member `members[k]` and skips the episodes held out for it.
+        `masks` maps a batch of episodes to (masked positions (K, B, L+1), masked codes
+        (K, 1 or B, |Ô|)), the positions None where whole codes are masked wherever they occur.
         `optimizer_state` continues an earlier fit's Adam moments."""
         optimizer = FlatAdam(model.parameters(), lr=self.config.learning_rate)
         if optimizer_state is not None:
@@ -933,10 +1074,20 @@ class EffectEstimator:
         mean_length = float(self.data.predicted[train].sum(dim=1).float().mean())
         by_length = max(1, round(self.config.batch_transitions / max(mean_length, 1.0)))
         size = min(self.config.batch_episodes, by_length, len(train))
+        # Few transitions per episode (the reward target): gather each batch's from a table
+        # laid out once (BatchedPredictor.transition_loss, the same loss in fewer operations).
+        table = self.data.predicted_transitions() if mean_length <= 4 else None
         for _ in range(steps):
             episodes = train[torch.randint(len(train), (size,), generator=generator)]
             weights = self.data.fit_weights(episodes, members)
-            loss = model.loss(self.data, episodes, *masks(episodes), weights)
+            masked, masked_codes = masks(episodes)
+            if masked is None and table is not None and _few(table.count[episodes]):
+                loss = model.transition_loss(self.data, table, episodes, masked_codes, weights)
+            else:
+                if masked is None:  # whole codes, wherever they occur in the episodes
+                    ids = self.data.ids[episodes].expand(len(masked_codes), -1, -1)
+                    masked = masked_codes.gather(2, ids)
+                loss = model.loss(self.data, episodes, masked, masked_codes, weights)
             optimizer.zero_grad()
             loss.sum().backward()
             optimizer.step()
