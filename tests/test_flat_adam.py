@@ -33,10 +33,13 @@ def _fit(params: list[nn.Parameter], optimizer, steps: range) -> None:
 
 
 @pytest.mark.parametrize("lr", [3e-3, 1e-1])
-def test_flat_adam_gives_torch_adams_parameters_bit_for_bit(lr):
+@pytest.mark.parametrize("foreach", [True, False])
+def test_flat_adam_gives_torch_adams_parameters_bit_for_bit(lr, foreach):
+    """Against both of torch's implementations: multi-tensor, and per tensor (its default on
+    the CPU)."""
     ours, theirs = _parameters(0), _parameters(0)
     _fit(ours, FlatAdam(ours, lr=lr), range(60))
-    _fit(theirs, torch.optim.Adam(theirs, lr=lr, foreach=True), range(60))
+    _fit(theirs, torch.optim.Adam(theirs, lr=lr, foreach=foreach), range(60))
     for a, b in zip(ours, theirs, strict=True):
         assert torch.equal(a, b)
     assert not torch.equal(ours[0], _parameters(0)[0])  # it did move them

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from thci.causal.flat_adam import FlatAdam
 from thci.rl.encoders import CellLayout, OneHotLinear
 
 
@@ -151,7 +152,10 @@ class Gate(nn.Module):
             eliminated: (|Ô|,) bool, I(o ∈ O^w).
         """
         target = eliminated.float()
-        optimizer = torch.optim.Adam(self.net.parameters(), lr=learning_rate)
+        # torch's Adam, bit for bit; constructing a torch.optim optimizer imports
+        # torch._dynamo (~1.8 s), and this fit is all that would need it in the CI worker,
+        # which the RL loop waits for when the first round comes before it is up.
+        optimizer = FlatAdam(self.net.parameters(), lr=learning_rate)
         step = 0
         with torch.enable_grad():
             for step in range(1, max_steps + 1):
