@@ -116,7 +116,7 @@ def train(config: TrainConfig) -> dict[str, Any]:
     """Train as `config` says; returns the summary also written to summary.json."""
     config.validate()
     torch.set_num_threads(config.torch_threads)
-    # The CI worker's start-up (a fresh interpreter importing torch, ~6 s here) overlaps the
+    # The CI worker's start-up (a fresh interpreter importing torch, ~1.3 s) overlaps the
     # run's own; started with the first rollout instead, it was not ready for the first round.
     # The CI loop closes it at the end of training; this closes it too when training fails first.
     worker = start_ci_worker() if config.method in CAUSAL_METHODS and config.ci_async else None
