@@ -134,6 +134,10 @@ REWARD_PART = {"dynamics": 1, "reward": 0}
 """Which error component is the reward's, for the targets that predict one."""
 REWARD_SCALE_FLOOR = 0.1
 """Smallest reward per episode (in units of max |r|) the reward part of an ATE is divided by."""
+FEW_PER_EPISODE = 4
+"""A batch with at most this many transitions to predict per episode (on average) sums each
+transition's history on its own (:meth:`BatchedPredictor.bag_max`); one with more takes a
+running max along each episode."""
 
 
 @dataclass(frozen=True)
@@ -608,7 +612,7 @@ class BatchedPredictor(nn.Module):
             rows, cols: (n,) episode and step t - 1 (0-based) of each transition.
         """
         num_models, num_rows, d = self.embed.shape
-        if len(rows) > 4 * len(ids):  # as _few tells
+        if not _few(len(rows), len(ids)):
             # Many transitions per episode: one running max along each episode, read one step
             # back (h_{t-1} excludes o_t). Laid out (K, d, B, L) so that it runs along the
             # contiguous last dimension (~1.4x faster than along L in (K, B, L, d)). F.embedding's
@@ -757,7 +761,7 @@ class BatchedPredictor(nn.Module):
         """:meth:`loss` where the masks are whole codes `masked_codes` (K, B, |Ô|), with the
         batch's transitions gathered from `table` (:meth:`CodeData.predicted_transitions`):
         the same loss, bit for bit, in fewer operations. Only for batches of few transitions
-        per episode (at most 4 on average, the history bag's regime)."""
+        per episode (`FEW_PER_EPISODE`, the history bag's regime)."""
         slots = table.slots[episodes]  # (B, P)
         present = slots >= 0
         chosen = slots[present]  # (n,) the batch's transitions, episode by episode
@@ -829,10 +833,10 @@ class BatchedPredictor(nn.Module):
         return (1 - torch.exp(-nll)).unsqueeze(0), nll
 
 
-def _few(counts: torch.Tensor) -> bool:
-    """Whether a batch of episodes with `counts` (B,) transitions to predict is in the history
-    bag's regime (at most 4 per episode on average; :meth:`BatchedPredictor._history`)."""
-    return int(counts.sum()) <= 4 * len(counts)
+def _few(transitions: int, episodes: int) -> bool:
+    """Whether a batch of `episodes` with `transitions` to predict is in the history bag's
+    regime (`FEW_PER_EPISODE`)."""
+    return transitions <= FEW_PER_EPISODE * episodes
 
 
 def _weighted_mean(terms: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
@@ -1076,12 +1080,16 @@ class EffectEstimator:
         size = min(self.config.batch_episodes, by_length, len(train))
         # Few transitions per episode (the reward target): gather each batch's from a table
         # laid out once (BatchedPredictor.transition_loss, the same loss in fewer operations).
-        table = self.data.predicted_transitions() if mean_length <= 4 else None
+        table = self.data.predicted_transitions() if mean_length <= FEW_PER_EPISODE else None
         for _ in range(steps):
             episodes = train[torch.randint(len(train), (size,), generator=generator)]
             weights = self.data.fit_weights(episodes, members)
             masked, masked_codes = masks(episodes)
-            if masked is None and table is not None and _few(table.count[episodes]):
+            if (
+                masked is None
+                and table is not None
+                and _few(int(table.count[episodes].sum()), len(episodes))
+            ):
                 loss = model.transition_loss(self.data, table, episodes, masked_codes, weights)
             else:
                 if masked is None:  # whole codes, wherever they occur in the episodes
