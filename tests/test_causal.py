@@ -24,6 +24,7 @@ from thci.causal.loop import (
     run_ci_job_on_two_cores,
 )
 from thci.causal.predictor import (
+    FEW_PER_EPISODE,
     BatchedPredictor,
     CodeData,
     EffectEstimate,
@@ -150,7 +151,7 @@ def test_the_fits_transition_table_gives_the_loss_and_gradients_of_the_episode_t
         model.embed[:, 3] = model.embed[:, 5]  # a tie
     table = data.predicted_transitions()
     episodes = data.fit_episodes[torch.randint(len(data.fit_episodes), (64,))]
-    assert 0 < int(table.count[episodes].sum()) <= 4 * len(episodes)
+    assert 0 < int(table.count[episodes].sum()) <= FEW_PER_EPISODE * len(episodes)
     _, masked_codes = estimator._random_code_dropout(episodes)
     weights = data.fit_weights(episodes, torch.arange(config.ensemble))
     masked = masked_codes.gather(2, data.ids[episodes].expand(config.ensemble, -1, -1))

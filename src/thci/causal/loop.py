@@ -205,8 +205,9 @@ def run_ci_job_on_two_cores(job: CIJob, worker: CIWorker) -> CIOutcome:
     L1-L3 first-round pools, 400 steps: 2.5-3.8 s in one process, 2.3-2.8 s in two. A single
     predictor, or one fine-tuned per intervention (which continues the fit's Adam state), is
     fitted in one piece, and so is a round that comes while the worker is still starting up:
-    waiting for it (a fresh interpreter importing torch and warming up, then ~6 s, longer than
-    Maze L1 takes to fill its first pool) made the RL loop wait 6.2 s for a 2.6 s round."""
+    waiting for it (a fresh interpreter importing torch and warming up, ~6 s at the time,
+    longer than Maze L1 takes to fill its first pool) made the RL loop wait 6.2 s for a 2.6 s
+    round."""
     members = job.predictor.ensemble
     if members < 2 or job.predictor.finetune_steps > 0 or not worker.ready.is_set():
         return run_ci_job(job)

@@ -772,7 +772,7 @@ class BatchedPredictor(nn.Module):
         steps = int(table.length[episodes].max())
         transitions = Transitions(episode, step, current, following, action, steps)
         out = self.predict(history, transitions, masked_codes & data.frequent)
-        targets = next_class if self.target == "dynamics" else action
+        targets = {"dynamics": next_class, "inverse": action, "reward": None}[self.target]
         _, per_step = self._outcome_terms(out, table.reward[chosen], targets, data.reward_weight)
         return _weighted_mean(per_step, weights[:, episode])
 
@@ -797,22 +797,23 @@ class BatchedPredictor(nn.Module):
         masked_codes = masked_codes & data.frequent
         out = self(ids, hidden, masked_codes, actions, valid)  # (K, n, out)
         reward = data.rewards[episodes, :steps][valid]
-        if self.target == "dynamics":
-            targets = data.next_class[episodes, :steps][valid]
-        else:
-            targets = actions[valid]
+        targets = {
+            "dynamics": lambda: data.next_class[episodes, :steps][valid],
+            "inverse": lambda: actions[valid],
+            "reward": lambda: None,
+        }[self.target]()
         return (*self._outcome_terms(out, reward, targets, data.reward_weight), valid)
 
     def _outcome_terms(
         self,
         out: torch.Tensor,
         reward: torch.Tensor,
-        targets: torch.Tensor,
+        targets: torch.Tensor | None,
         reward_weight: float,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Errors (C, K, n) and loss terms (K, n) of outputs `out` (K, n, out) for transitions
         with rewards `reward` (n,) and categorical `targets` (n,): the next observation's class
-        (dynamics) or the action (inverse; unused by the reward target)."""
+        (dynamics) or the action (inverse); None for the reward target."""
         num_models = out.shape[0]
         true_reward = reward.unsqueeze(0)
         if self.target == "dynamics":
