@@ -131,7 +131,7 @@ def test_presets_name_the_papers_methods_and_are_valid():
     comparison = load_grid("maze-lstm-vs-thci").configs()
     assert len(comparison) == 4 * 2 * 5
     hard = [c for c in comparison if c.env.endswith(("L3-v0", "L4-v0"))]
-    assert all(c.total_steps == 1_000_000 for c in hard)
+    assert all(c.total_steps == 2_000_000 for c in hard)
     assert {c.total_steps for c in comparison if c not in hard} == {200_000}
     # one set of settings on every level: the count-memory bonus applies to t-hci, lstm
     # counts places alone
