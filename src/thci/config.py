@@ -15,6 +15,9 @@ from typing import Any, Literal
 
 from thci.errors import ThciError
 
+EncoderKind = Literal["flat", "grid", "cells"]
+"""The agent's first layer (``--encoder``; :func:`thci.rl.encoders.make_encoder`)."""
+
 Method = Literal["lstm", "gru", "mlp", "nm", "wmg", "sai", "hai", "oracle", "t-hci", "hci"]
 CAUSAL_METHODS = ("t-hci", "hci")
 # Methods whose memory weighs each observation (ν of TAIE): the gate, attention, the labels.
@@ -61,9 +64,11 @@ class TrainConfig:
     """auto: the environment's native batched implementation when it has one, else sync."""
 
     # Model
-    encoder: Literal["flat", "grid"] = "flat"
-    """The observation encoder: one layer on the flat observation (integer codes one-hot), or
-    convolutions over a square image of categorical cells laid out as ``cell_layout`` says."""
+    encoder: EncoderKind = "flat"
+    """The observation encoder, for images of categorical cells laid out as ``cell_layout``
+    says: one layer on the flat observation (integer codes one-hot each), convolutions over
+    the square image (grid), or one layer with each cell's whole value one-hot (cells: a green
+    wall and a green door are different inputs; docs/babyai.md)."""
     encoder_size: int = 64
     """Width of the observation encoder."""
     hidden_size: int = 64

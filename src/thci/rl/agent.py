@@ -15,8 +15,9 @@ import torch
 from torch import nn
 
 from thci.causal.gate import Gate
+from thci.config import EncoderKind
 from thci.memory import Memory
-from thci.rl.encoders import GridEncoder, OneHotLinear
+from thci.rl.encoders import make_encoder
 
 
 def _layer(linear: nn.Linear, std: float) -> nn.Linear:
@@ -39,8 +40,9 @@ class ActorCritic(nn.Module):
         categories: for observations of small integer codes, the number of values of each
             dimension (:func:`thci.rl.encoders.observation_categories`): the encoder then reads
             them one-hot. None: a linear encoder on the values as they are.
-        cell_layout: (offset, cells, values per cell) of a square image of categorical cells:
-            the encoder is then a :class:`~thci.rl.encoders.GridEncoder` (needs `categories`).
+        encoder: the first layer (:func:`thci.rl.encoders.make_encoder`): flat, or for images
+            of categorical cells (needs `categories`) grid or cells.
+        cell_layout: (offset, cells, values per cell) of those images.
     """
 
     def __init__(
@@ -51,21 +53,15 @@ class ActorCritic(nn.Module):
         encoder_size: int,
         gate: Gate | None = None,
         categories: list[int] | None = None,
-        cell_layout: tuple[int, int, int] | None = None,
+        encoder: EncoderKind = "flat",
+        cell_layout: tuple[int, int, int] = (0, 49, 3),
     ) -> None:
         super().__init__()
         self.gate = gate
         self.observation_size = observation_size
         if categories is not None and len(categories) != observation_size:
             raise ValueError(f"{len(categories)} categories for {observation_size} dimensions")
-        if cell_layout is not None:
-            if categories is None:
-                raise ValueError("a grid encoder needs integer cells with small bounds")
-            first: nn.Module = GridEncoder(observation_size, cell_layout, categories, encoder_size)
-        elif categories is not None:
-            first = OneHotLinear(categories, encoder_size)
-        else:
-            first = _layer(nn.Linear(observation_size, encoder_size), np.sqrt(2))
+        first = make_encoder(encoder, observation_size, categories, cell_layout, encoder_size)
         self.encoder = nn.Sequential(first, nn.ReLU())
         self.memory = memory
         # A hidden layer between memory and outputs (as in SB3's RecurrentPPO): with linear

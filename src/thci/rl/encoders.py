@@ -6,6 +6,11 @@ magnitudes: "key" (5) is not "between" "door" (4) and "ball" (6). A linear layer
 indices has to untangle that; a linear layer on their one-hot expansion does not. So a Box of
 integers with small bounds is encoded one-hot, computed as a sum of embeddings (the same
 function as ``Linear(one_hot(obs))`` without building the one-hot tensor).
+
+Images of categorical cells (minigrid's (object, colour, state) per cell) can instead be read
+one-hot *per cell* (``--encoder cells``): a per-dimension one-hot adds a "green" feature that
+is the same for a green wall and a green door in the same place, so one linear layer cannot
+tell them apart, while the cell's whole value as one category can (:class:`CellOneHot`).
 """
 
 from __future__ import annotations
@@ -18,12 +23,15 @@ import torch
 from gymnasium import spaces
 from torch import nn
 
+from thci.config import EncoderKind
 from thci.errors import ThciError
 
 # One-hot encoding is used when every dimension has at most this many values and the
 # expansion stays this small; past that (e.g. raw 0-255 pixels) the linear layer is kept.
 MAX_VALUES_PER_DIM = 32
 MAX_ONE_HOT_SIZE = 8192
+# ``--encoder cells``: rows of its embedding table, summed over cells (49 x 198 for minigrid).
+MAX_CELL_ONE_HOT_SIZE = 65536
 
 
 def observation_categories(space: spaces.Space) -> list[int] | None:
@@ -99,11 +107,71 @@ class CellLayout:
         cells = torch.as_tensor(list(categories[self.offset : self.end]))
         return cells.view(self.num_cells, self.cell_size).max(dim=0).values.tolist()
 
+    def rest_categories(self, categories: Sequence[int]) -> list[int]:
+        """Values of each entry outside the cells."""
+        return [*categories[: self.offset], *categories[self.end :]]
+
     def split(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(..., D) -> cells (..., num_cells, cell_size) and the rest (..., D - cells)."""
         cells = obs[..., self.offset : self.end]
         cells = cells.reshape(*obs.shape[:-1], self.num_cells, self.cell_size)
         return cells, torch.cat((obs[..., : self.offset], obs[..., self.end :]), dim=-1)
+
+
+class CellOneHot(nn.Module):
+    """``Linear(one_hot(obs))`` with each cell's whole value as one category (``--encoder
+    cells``), the other entries one-hot each.
+
+    A cell of c channels with n_1 .. n_c values becomes one of n_1 * ... * n_c categories: for
+    minigrid, "green wall" (object 2, colour 1, state 0) is its own input, not the sum of a
+    "wall" and a "green" input shared with green doors, keys and balls. On a test with a known
+    answer (tell the colour of the one coloured wall among 48 grey walls, empty cells and 0-3
+    doors, keys or balls of any colour; 170 views per Adam step, width 64) the per-channel
+    one-hot stayed at 90% accuracy after 68k views, this one reached 97% after 8.5k
+    (docs/babyai.md).
+
+    Args:
+        observation_size: D of a flat observation.
+        cell_layout: (offset, n cells, c values per cell).
+        categories: values per dimension of the observation.
+        out_size: E.
+    """
+
+    def __init__(
+        self,
+        observation_size: int,
+        cell_layout: tuple[int, int, int],
+        categories: Sequence[int],
+        out_size: int,
+    ) -> None:
+        super().__init__()
+        self.layout = CellLayout(cell_layout)
+        if self.layout.end > observation_size:
+            raise ThciError(
+                f"--cell-layout {cell_layout} needs {self.layout.end} entries, the observations "
+                f"have {observation_size}"
+            )
+        channels = torch.as_tensor(self.layout.channel_categories(categories))
+        joint = int(channels.prod())
+        size = joint * self.layout.num_cells
+        if size > MAX_CELL_ONE_HOT_SIZE:
+            raise ThciError(
+                f"--encoder cells would embed {size} cell values ({self.layout.num_cells} cells "
+                f"x {joint}), more than {MAX_CELL_ONE_HOT_SIZE}: use --encoder flat or grid"
+            )
+        # Mixed radix: the last channel varies fastest.
+        after = torch.cat((channels[1:], torch.ones(1, dtype=channels.dtype)))
+        self.register_buffer("strides", after.flip(0).cumprod(0).flip(0), persistent=False)
+        self.register_buffer("last", channels - 1, persistent=False)
+        rest = self.layout.rest_categories(categories)
+        self.linear = OneHotLinear([joint] * self.layout.num_cells + rest, out_size)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """(..., D) integer-valued observations -> (..., E) features."""
+        cells, rest = self.layout.split(obs)
+        values = torch.minimum(cells.long().clamp(min=0), self.last)
+        index = (values * self.strides).sum(dim=-1)  # (..., n cells)
+        return self.linear(torch.cat((index, rest.long()), dim=-1))
 
 
 class GridEncoder(nn.Module):
@@ -157,3 +225,36 @@ class GridEncoder(nn.Module):
         cells, rest = self.layout.split(obs.reshape(-1, obs.shape[-1]))
         grid = self.cell(cells).view(len(cells), self.side, self.side, -1).permute(0, 3, 1, 2)
         return self.out(torch.cat((self.conv(grid), rest), dim=-1)).view(*lead, -1)
+
+
+def make_encoder(
+    kind: EncoderKind,
+    observation_size: int,
+    categories: Sequence[int] | None,
+    cell_layout: tuple[int, int, int],
+    out_size: int,
+) -> nn.Module:
+    """The agent's first layer (``--encoder``), without its activation.
+
+    Args:
+        kind: flat (one-hot per dimension for small integer codes, else linear), grid
+            (:class:`GridEncoder`) or cells (:class:`CellOneHot`).
+        observation_size: D. categories: values per dimension, or None for real values.
+        cell_layout: (offset, n cells, c values per cell), for grid and cells.
+        out_size: E.
+    """
+    if kind == "flat":
+        if categories is None:
+            linear = nn.Linear(observation_size, out_size)
+            nn.init.orthogonal_(linear.weight, np.sqrt(2))
+            nn.init.zeros_(linear.bias)
+            return linear
+        return OneHotLinear(categories, out_size)
+    if categories is None:
+        raise ThciError(
+            f"--encoder {kind} reads images of small integer cells (a Box of integers with "
+            f"bounds 0..{MAX_VALUES_PER_DIM - 1}); these observations are not: use --encoder flat"
+        )
+    if kind == "grid":
+        return GridEncoder(observation_size, cell_layout, categories, out_size)
+    return CellOneHot(observation_size, cell_layout, categories, out_size)

@@ -74,11 +74,6 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
         wmg_head_size=config.wmg_head_size,
     )
     categories = observation_categories(envs.single_observation_space)
-    if config.encoder == "grid" and categories is None:
-        raise ThciError(
-            "--encoder grid reads images of small integer cells (a Box of integers with bounds "
-            f"0..31); {config.env} observations are not: use --encoder flat"
-        )
     gate = None
     if causal:  # built only when used: building it draws from torch's RNG, as the agent does
         gate_spec = GateSpec(
@@ -94,7 +89,8 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
         config.encoder_size,
         gate=gate,
         categories=categories,
-        cell_layout=config.cell_layout if config.encoder == "grid" else None,
+        encoder=config.encoder,
+        cell_layout=config.cell_layout,
     )
 
 
