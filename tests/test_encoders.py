@@ -8,7 +8,7 @@ from gymnasium import spaces
 from thci.config import TrainConfig
 from thci.envs.factory import make_vector_env
 from thci.errors import ThciError
-from thci.rl.encoders import CellOneHot, GridEncoder, OneHotLinear, observation_categories
+from thci.rl.encoders import CellEncoder, GridEncoder, OneHotLinear, observation_categories
 from thci.rl.trainer import build_agent
 
 
@@ -89,7 +89,7 @@ def test_grid_encoder_reads_a_cell_by_its_value_and_place_and_keeps_the_rest():
     assert not torch.allclose(encoder(other_rest), encoder(obs))
 
 
-@pytest.mark.parametrize(("kind", "first_layer"), [("grid", GridEncoder), ("cells", CellOneHot)])
+@pytest.mark.parametrize(("kind", "first_layer"), [("grid", GridEncoder), ("cells", CellEncoder)])
 def test_trainer_builds_a_cell_encoder_on_request_and_refuses_it_where_cells_are_missing(
     kind, first_layer
 ):
@@ -112,27 +112,36 @@ def _cell_values(pairs: list[tuple[int, int]]) -> torch.Tensor:
     return torch.tensor([[1, obj, colour, 0, 1, 0, 0] for obj, colour in pairs])
 
 
-def test_cell_one_hot_equals_a_linear_layer_on_each_cells_whole_value():
+def test_cell_encoder_reads_each_cells_whole_value_by_place_and_pooled_over_places():
     torch.manual_seed(0)
     layout, categories = (1, 2, 3), [3] + [5, 4, 2] * 2  # a leading entry, two cells
-    encoder = CellOneHot(7, layout, categories, out_size=6)
+    encoder = CellEncoder(7, layout, categories, out_size=6)
     obs = torch.tensor([[2, 4, 3, 1, 0, 0, 0], [0, 1, 2, 0, 3, 1, 1]])
-    # Category of a cell: (object * 4 + colour) * 2 + state, one table of 40 rows per cell.
-    joint = [[2, 4 * 8 + 3 * 2 + 1, 0], [0, 1 * 8 + 2 * 2, 3 * 8 + 1 * 2 + 1]]
+    # Category of a cell: (object * 4 + colour) * 2 + state.
+    joint = torch.tensor([[4 * 8 + 3 * 2 + 1, 0], [1 * 8 + 2 * 2, 3 * 8 + 1 * 2 + 1]])
+    assert torch.equal(encoder.cell_categories(obs.float()), joint)
+    # By place: a linear layer on the one-hot of (leading entry, cell 0, cell 1), 40 per cell.
     one_hot = torch.cat(
         [
-            torch.nn.functional.one_hot(torch.tensor([row[0] for row in joint]), 3),
-            torch.nn.functional.one_hot(torch.tensor([row[1] for row in joint]), 40),
-            torch.nn.functional.one_hot(torch.tensor([row[2] for row in joint]), 40),
+            torch.nn.functional.one_hot(obs[:, 0], 3),
+            torch.nn.functional.one_hot(joint[:, 0], 40),
+            torch.nn.functional.one_hot(joint[:, 1], 40),
         ],
         -1,
     ).float()
-    table = encoder.linear.embedding.weight
-    expected = one_hot @ torch.cat((table[-3:], table[:80])) + encoder.linear.bias
+    table = encoder.by_place.embedding.weight
+    by_place = one_hot @ torch.cat((table[-3:], table[:80])) + encoder.by_place.bias
+    # Pooled: the max over cells of ReLU(one shared embedding), the same wherever a cell is.
+    pooled = torch.relu(encoder.cell_embedding.weight[joint]).amax(dim=1)
+    assert torch.allclose(encoder.pooled(obs), pooled)
+    swapped = obs[:, [0, 4, 5, 6, 1, 2, 3]]
+    assert torch.allclose(encoder.pooled(swapped), pooled)
+    assert not torch.allclose(encoder(swapped), encoder(obs))  # the by-place branch differs
+    expected = by_place + encoder.pooled_out(pooled)
     assert torch.allclose(encoder(obs.float()), expected, atol=1e-6)
 
 
-def test_cell_one_hot_tells_a_green_wall_from_a_green_door_where_per_channel_one_hot_cannot():
+def test_cell_encoder_tells_a_green_wall_from_a_green_door_where_per_entry_one_hot_cannot():
     # A per-channel one-hot layer is additive in object and colour: the change from blue to
     # green is the same vector for a wall and for a door, so no linear readout can single out
     # "green wall" (an XOR of the two channels). The cell's whole value can.
@@ -142,7 +151,7 @@ def test_cell_one_hot_tells_a_green_wall_from_a_green_door_where_per_channel_one
     obs = _cell_values([(wall, green), (wall, blue), (door, green), (door, blue)])
     per_channel = OneHotLinear(categories, 8)(obs)
     assert torch.allclose(per_channel[0] - per_channel[1], per_channel[2] - per_channel[3])
-    cells = CellOneHot(7, layout, categories, 8)(obs)
+    cells = CellEncoder(7, layout, categories, 8)(obs)
     assert not torch.allclose(cells[0] - cells[1], cells[2] - cells[3], atol=1e-3)
     # A linear readout of the cell features fits "is a green wall" exactly.
     target = torch.tensor([1.0, 0.0, 0.0, 0.0])
@@ -151,10 +160,10 @@ def test_cell_one_hot_tells_a_green_wall_from_a_green_door_where_per_channel_one
     assert torch.allclose(fit.squeeze(1), target, atol=1e-4)
 
 
-def test_cell_one_hot_refuses_a_layout_beyond_the_observation_or_too_many_values():
+def test_cell_encoder_refuses_a_layout_beyond_the_observation_or_too_many_values():
     with pytest.raises(ThciError, match="needs 151 entries"):
-        CellOneHot(100, (4, 49, 3), [11, 6, 3] * 50, 8)
+        CellEncoder(100, (4, 49, 3), [11, 6, 3] * 50, 8)
     with pytest.raises(ThciError, match="--encoder cells would embed"):
-        CellOneHot(151, (0, 49, 3), [31] * 151, 8)
+        CellEncoder(151, (0, 49, 3), [31] * 151, 8)
     with pytest.raises(ThciError, match="square"):
         GridEncoder(151, (0, 50, 3), [3] * 151, 8)
