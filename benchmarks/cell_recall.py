@@ -30,7 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 import gymnasium as gym
 import numpy as np
@@ -38,6 +38,7 @@ import torch
 from gymnasium import spaces
 from torch import nn
 
+from thci.config import EncoderKind
 from thci.rl.encoders import make_encoder
 
 RESULTS = Path(__file__).parent / "results"
@@ -126,13 +127,13 @@ def labelled_views(rng: np.random.Generator, n: int) -> tuple[torch.Tensor, torc
 
 
 def views_to_accuracy(
-    kind: str, seed: int, max_views: int, target: float = 0.95, batch: int = 170
+    kind: EncoderKind, seed: int, max_views: int, target: float = 0.95, batch: int = 170
 ) -> tuple[int | None, float]:
     """Views an encoder + linear readout needs to reach `target` held-out accuracy (None: not
     within `max_views`), and its final accuracy."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    encoder = make_encoder(kind, len(HIGH), CATEGORIES, (0, CELLS, CHANNELS), 64)  # type: ignore[arg-type]
+    encoder = make_encoder(kind, len(HIGH), CATEGORIES, (0, CELLS, CHANNELS), 64)
     net = nn.Sequential(encoder, nn.ReLU(), nn.Linear(64, 2))
     optimizer = torch.optim.Adam(net.parameters(), 1e-3)
     test_views, test_colours = labelled_views(rng, 2000)
@@ -159,7 +160,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     records = []
-    for kind in ("flat", "grid", "cells"):
+    for kind in get_args(EncoderKind):
         for seed in args.seeds:
             views, accuracy = views_to_accuracy(kind, seed, args.max_views)
             records.append(

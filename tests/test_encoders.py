@@ -161,8 +161,9 @@ def test_cell_encoder_tells_a_green_wall_from_a_green_door_where_per_entry_one_h
 
 
 def test_cell_encoder_refuses_a_layout_beyond_the_observation_or_too_many_values():
-    with pytest.raises(ThciError, match="needs 151 entries"):
-        CellEncoder(100, (4, 49, 3), [11, 6, 3] * 50, 8)
+    for encoder in (CellEncoder, GridEncoder):  # the layout's own check, shared by both
+        with pytest.raises(ThciError, match="needs 151 entries"):
+            encoder(100, (4, 49, 3), [11, 6, 3] * 50, 8)
     with pytest.raises(ThciError, match="--encoder cells would embed"):
         CellEncoder(151, (0, 49, 3), [31] * 151, 8)
     with pytest.raises(ThciError, match="square"):

@@ -50,7 +50,7 @@ class CellSetNet(nn.Module):
         hidden_size: int,
     ) -> None:
         super().__init__()
-        self.layout = CellLayout(cell_layout)
+        self.layout = CellLayout(cell_layout, observation_size)
         if categories is None:
             self.cell: nn.Module = nn.Linear(self.layout.cell_size, hidden_size)
         else:

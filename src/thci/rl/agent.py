@@ -17,14 +17,7 @@ from torch import nn
 from thci.causal.gate import Gate
 from thci.config import EncoderKind
 from thci.memory import Memory
-from thci.rl.encoders import make_encoder
-
-
-def _layer(linear: nn.Linear, std: float) -> nn.Linear:
-    # Orthogonal init with small policy-head gain: the standard PPO recipe (CleanRL, SB3).
-    nn.init.orthogonal_(linear.weight, std)
-    nn.init.zeros_(linear.bias)
-    return linear
+from thci.rl.encoders import make_encoder, orthogonal_linear
 
 
 class ActorCritic(nn.Module):
@@ -75,9 +68,9 @@ class ActorCritic(nn.Module):
     @staticmethod
     def _head(in_size: int, hidden: int, out_size: int, std: float) -> nn.Sequential:
         return nn.Sequential(
-            _layer(nn.Linear(in_size, hidden), np.sqrt(2)),
+            orthogonal_linear(in_size, hidden, np.sqrt(2)),
             nn.Tanh(),
-            _layer(nn.Linear(hidden, out_size), std),
+            orthogonal_linear(hidden, out_size, std),
         )
 
     def policy_parameters(self) -> list[nn.Parameter]:

@@ -35,6 +35,15 @@ MAX_ONE_HOT_SIZE = 8192
 MAX_CELL_ONE_HOT_SIZE = 65536
 
 
+def orthogonal_linear(in_size: int, out_size: int, std: float) -> nn.Linear:
+    """``nn.Linear`` with orthogonal weights of gain `std` and zero bias: the standard PPO
+    recipe (CleanRL, SB3), with a small gain for the policy head."""
+    linear = nn.Linear(in_size, out_size)
+    nn.init.orthogonal_(linear.weight, std)
+    nn.init.zeros_(linear.bias)
+    return linear
+
+
 def observation_categories(space: spaces.Space) -> list[int] | None:
     """Per-dimension number of values of a flat integer Box with small bounds, else None.
 
@@ -92,11 +101,17 @@ class CellLayout:
 
     Args:
         layout: (offset, num_cells, cell_size).
+        observation_size: D of the flat observations the layout describes.
     """
 
-    def __init__(self, layout: tuple[int, int, int]) -> None:
+    def __init__(self, layout: tuple[int, int, int], observation_size: int) -> None:
         self.offset, self.num_cells, self.cell_size = layout
         self.end = self.offset + self.num_cells * self.cell_size
+        if self.end > observation_size:
+            raise ThciError(
+                f"--cell-layout {tuple(layout)} needs {self.end} entries, the observations "
+                f"have {observation_size}"
+            )
 
     def rest_size(self, observation_size: int) -> int:
         """Entries outside the cells."""
@@ -155,12 +170,7 @@ class CellEncoder(nn.Module):
         out_size: int,
     ) -> None:
         super().__init__()
-        self.layout = CellLayout(cell_layout)
-        if self.layout.end > observation_size:
-            raise ThciError(
-                f"--cell-layout {cell_layout} needs {self.layout.end} entries, the observations "
-                f"have {observation_size}"
-            )
+        self.layout = CellLayout(cell_layout, observation_size)
         channels = torch.as_tensor(self.layout.channel_categories(categories))
         joint = int(channels.prod())
         size = joint * self.layout.num_cells
@@ -180,21 +190,24 @@ class CellEncoder(nn.Module):
 
     def cell_categories(self, obs: torch.Tensor) -> torch.Tensor:
         """(..., D) observations -> (..., n cells) long: each cell's category."""
-        cells, _ = self.layout.split(obs)
-        values = torch.minimum(cells.long().clamp(min=0), self.last)
-        return (values * self.strides).sum(dim=-1)
+        return self._categories(self.layout.split(obs)[0])
 
     def pooled(self, obs: torch.Tensor) -> torch.Tensor:
         """(..., D) -> (..., E): the position-free branch, before its output layer."""
         return self._pool(self.cell_categories(obs))
+
+    def _categories(self, cells: torch.Tensor) -> torch.Tensor:
+        """(..., n cells, c) cell values -> (..., n cells) categories (mixed radix)."""
+        values = torch.minimum(cells.long().clamp(min=0), self.last)
+        return (values * self.strides).sum(dim=-1)
 
     def _pool(self, index: torch.Tensor) -> torch.Tensor:
         return torch.relu(self.cell_embedding(index)).amax(dim=-2)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """(..., D) integer-valued observations -> (..., E) features."""
-        index = self.cell_categories(obs)
-        _, rest = self.layout.split(obs)
+        cells, rest = self.layout.split(obs)
+        index = self._categories(cells)
         by_place = self.by_place(torch.cat((index, rest.long()), dim=-1))
         return by_place + self.pooled_out(self._pool(index))
 
@@ -225,7 +238,7 @@ class GridEncoder(nn.Module):
         channels: int = 16,
     ) -> None:
         super().__init__()
-        self.layout = CellLayout(cell_layout)
+        self.layout = CellLayout(cell_layout, observation_size)
         num_cells = self.layout.num_cells
         self.side = math.isqrt(num_cells)
         if self.side * self.side != num_cells:
@@ -270,10 +283,7 @@ def make_encoder(
     """
     if kind == "flat":
         if categories is None:
-            linear = nn.Linear(observation_size, out_size)
-            nn.init.orthogonal_(linear.weight, np.sqrt(2))
-            nn.init.zeros_(linear.bias)
-            return linear
+            return orthogonal_linear(observation_size, out_size, np.sqrt(2))
         return OneHotLinear(categories, out_size)
     if categories is None:
         raise ThciError(
