@@ -92,7 +92,14 @@ class OneHotLinear(nn.Module):
         """(..., D) integer-valued observations (any dtype) -> (..., E) features."""
         # Clamping keeps a masked (zeroed) or out-of-range value a valid index.
         index = torch.minimum(obs.long().clamp(min=0), self.last) + self.offsets
-        return self.embedding(index).sum(dim=-2) + self.bias
+        # One sum-mode bag per observation: an embedding followed by a sum built the
+        # (..., D, E) rows first, ~7x slower on a PPO minibatch of BabyAI views (forward and
+        # backward, 512 x 151 entries) and ~70x on a 2048-view forward.
+        lead = index.shape[:-1]
+        summed = nn.functional.embedding_bag(
+            index.reshape(-1, index.shape[-1]), self.embedding.weight, mode="sum"
+        )
+        return summed.view(*lead, -1) + self.bias
 
 
 class CellLayout:
