@@ -112,7 +112,7 @@ def _cell_values(pairs: list[tuple[int, int]]) -> torch.Tensor:
     return torch.tensor([[1, obj, colour, 0, 1, 0, 0] for obj, colour in pairs])
 
 
-def test_cell_encoder_reads_each_cells_whole_value_by_place_and_pooled_over_places():
+def test_cell_encoder_reads_entries_by_place_and_whole_cells_pooled_over_places():
     torch.manual_seed(0)
     layout, categories = (1, 2, 3), [3] + [5, 4, 2] * 2  # a leading entry, two cells
     encoder = CellEncoder(7, layout, categories, out_size=6)
@@ -120,17 +120,11 @@ def test_cell_encoder_reads_each_cells_whole_value_by_place_and_pooled_over_plac
     # Category of a cell: (object * 4 + colour) * 2 + state.
     joint = torch.tensor([[4 * 8 + 3 * 2 + 1, 0], [1 * 8 + 2 * 2, 3 * 8 + 1 * 2 + 1]])
     assert torch.equal(encoder.cell_categories(obs.float()), joint)
-    # By place: a linear layer on the one-hot of (leading entry, cell 0, cell 1), 40 per cell.
+    # By place: a linear layer on the one-hot of every entry, as the flat encoder reads it.
     one_hot = torch.cat(
-        [
-            torch.nn.functional.one_hot(obs[:, 0], 3),
-            torch.nn.functional.one_hot(joint[:, 0], 40),
-            torch.nn.functional.one_hot(joint[:, 1], 40),
-        ],
-        -1,
+        [torch.nn.functional.one_hot(obs[:, i], n) for i, n in enumerate(categories)], -1
     ).float()
-    table = encoder.by_place.embedding.weight
-    by_place = one_hot @ torch.cat((table[-3:], table[:80])) + encoder.by_place.bias
+    by_place = one_hot @ encoder.by_place.embedding.weight + encoder.by_place.bias
     # Pooled: the max over cells of ReLU(one shared embedding), the same wherever a cell is.
     pooled = torch.relu(encoder.cell_embedding.weight[joint]).amax(dim=1)
     assert torch.allclose(encoder.pooled(obs), pooled)
@@ -164,7 +158,7 @@ def test_cell_encoder_refuses_a_layout_beyond_the_observation_or_too_many_values
     for encoder in (CellEncoder, GridEncoder):  # the layout's own check, shared by both
         with pytest.raises(ThciError, match="needs 151 entries"):
             encoder(100, (4, 49, 3), [11, 6, 3] * 50, 8)
-    with pytest.raises(ThciError, match="--encoder cells would embed"):
-        CellEncoder(151, (0, 49, 3), [31] * 151, 8)
+    with pytest.raises(ThciError, match="--encoder cells would embed 125000 cell values"):
+        CellEncoder(151, (0, 49, 3), [50] * 151, 8)
     with pytest.raises(ThciError, match="square"):
         GridEncoder(151, (0, 50, 3), [3] * 151, 8)

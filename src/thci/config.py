@@ -67,8 +67,9 @@ class TrainConfig:
     encoder: EncoderKind = "flat"
     """The observation encoder, for images of categorical cells laid out as ``cell_layout``
     says: one layer on the flat observation (integer codes one-hot each), convolutions over
-    the square image (grid), or each cell's whole value as one category, by place and pooled
-    over places (cells: a green wall and a green door are different inputs; docs/babyai.md)."""
+    the square image (grid), or the flat layer plus each cell's whole value as one category,
+    pooled over places (cells: a green wall and a green door are different inputs;
+    docs/babyai.md)."""
     encoder_size: int = 64
     """Width of the observation encoder."""
     hidden_size: int = 64

@@ -7,11 +7,11 @@ indices has to untangle that; a linear layer on their one-hot expansion does not
 integers with small bounds is encoded one-hot, computed as a sum of embeddings (the same
 function as ``Linear(one_hot(obs))`` without building the one-hot tensor).
 
-Images of categorical cells (minigrid's (object, colour, state) per cell) can instead be read
-one-hot *per cell* (``--encoder cells``): a per-dimension one-hot adds a "green" feature that
-is the same for a green wall and a green door in the same place, so one linear layer cannot
-tell them apart, while the cell's whole value as one category can; a branch pooled over places
-then makes "a green wall somewhere in view" one feature (:class:`CellEncoder`).
+Images of categorical cells (minigrid's (object, colour, state) per cell) can also be read
+*per cell* (``--encoder cells``): a per-dimension one-hot adds a "green" feature that is the
+same for a green wall and a green door in the same place, so one linear layer cannot tell them
+apart, while the cell's whole value as one category can; pooled over places, "a green wall
+somewhere in view" becomes one feature (:class:`CellEncoder`).
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ from thci.errors import ThciError
 # expansion stays this small; past that (e.g. raw 0-255 pixels) the linear layer is kept.
 MAX_VALUES_PER_DIM = 32
 MAX_ONE_HOT_SIZE = 8192
-# ``--encoder cells``: rows of its embedding table, summed over cells (49 x 198 for minigrid).
-MAX_CELL_ONE_HOT_SIZE = 65536
+# ``--encoder cells``: rows of its table of whole cell values (198 for minigrid).
+MAX_CELL_CATEGORIES = 65536
 
 
 def orthogonal_linear(in_size: int, out_size: int, std: float) -> nn.Linear:
@@ -130,10 +130,6 @@ class CellLayout:
         cells = torch.as_tensor(list(categories[self.offset : self.end]))
         return cells.view(self.num_cells, self.cell_size).max(dim=0).values.tolist()
 
-    def rest_categories(self, categories: Sequence[int]) -> list[int]:
-        """Values of each entry outside the cells."""
-        return [*categories[: self.offset], *categories[self.end :]]
-
     def split(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(..., D) -> cells (..., num_cells, cell_size) and the rest (..., D - cells)."""
         cells = obs[..., self.offset : self.end]
@@ -142,25 +138,26 @@ class CellLayout:
 
 
 class CellEncoder(nn.Module):
-    """Each cell's whole value one-hot, by place and pooled over places (``--encoder cells``).
+    """The flat encoder plus each cell's whole value pooled over places (``--encoder cells``).
 
-    A cell of c channels with n_1 .. n_c values becomes one of n_1 * ... * n_c categories: for
-    minigrid, "green wall" (object 2, colour 1, state 0) is its own input, not the sum of a
+    A cell of c channels with n_1 .. n_c values is also one of n_1 * ... * n_c categories: for
+    minigrid, "green wall" (object 2, colour 1, state 0) is its own category, not the sum of a
     "wall" and a "green" input shared with green doors, keys and balls. Two branches read the
-    categories, and their sum is the output:
+    observation, and their sum is the output:
 
-    * by place: ``Linear(one_hot)`` over (place, category) and the other entries (one-hot
-      each), as the flat encoder but with whole cells: *where* things are;
-    * pooled: one embedding table shared by all places, ReLU, max over the cells (as the
-      gate's :class:`~thci.causal.gate.CellSetNet` and BabyAI's own models pool): *what* is in
-      view, wherever it is, so "a green wall somewhere" is one feature learned from every
-      view instead of once per place.
+    * by place: the flat encoder (each entry one-hot, :class:`OneHotLinear`): *where* things
+      are, with what is common to all colours of an object (a door ahead) learned once;
+    * pooled: one embedding of the cell categories shared by all places, ReLU, max over the
+      cells (as the gate's :class:`~thci.causal.gate.CellSetNet` and BabyAI's own models
+      pool): *what* is in view, wherever it is, so "a green wall somewhere" is one feature
+      learned from every view instead of once per place.
 
-    Tested with a known answer (benchmarks/cell_recall.py, docs/babyai.md): telling a green
-    from a blue wall cell among 48 others took the per-entry flat encoder over 100k views to
-    95% accuracy (it stays at ~0.90), the by-place branch alone 8.5k-11.9k, both branches
-    1.7k-5.1k; remembering it over a 12-step episode, an LSTM-PPO agent learned it in 97.7k
-    steps with both branches and not in 300k with either of the others.
+    Tested with a known answer (benchmarks/cell_recall.py, docs/babyai.md): the flat encoder
+    alone does not reach 95% accuracy telling a green from a blue wall cell among 48 others
+    within 100k views (it stays at ~0.90); with the pooled branch an LSTM-PPO agent also learns
+    to remember it over a 12-step episode. An earlier by-place branch read whole cells too
+    (49 x 198 rows for minigrid): it learned the recall as well but BabyAI's navigation far
+    more slowly (each colour of a door learned apart; docs/babyai.md).
 
     Args:
         observation_size: D of a flat observation.
@@ -180,18 +177,16 @@ class CellEncoder(nn.Module):
         self.layout = CellLayout(cell_layout, observation_size)
         channels = torch.as_tensor(self.layout.channel_categories(categories))
         joint = int(channels.prod())
-        size = joint * self.layout.num_cells
-        if size > MAX_CELL_ONE_HOT_SIZE:
+        if joint > MAX_CELL_CATEGORIES:
             raise ThciError(
-                f"--encoder cells would embed {size} cell values ({self.layout.num_cells} cells "
-                f"x {joint}), more than {MAX_CELL_ONE_HOT_SIZE}: use --encoder flat or grid"
+                f"--encoder cells would embed {joint} cell values (the product of "
+                f"{channels.tolist()}), more than {MAX_CELL_CATEGORIES}: use --encoder flat or grid"
             )
         # Mixed radix: the last channel varies fastest.
         after = torch.cat((channels[1:], torch.ones(1, dtype=channels.dtype)))
         self.register_buffer("strides", after.flip(0).cumprod(0).flip(0), persistent=False)
         self.register_buffer("last", channels - 1, persistent=False)
-        rest = self.layout.rest_categories(categories)
-        self.by_place = OneHotLinear([joint] * self.layout.num_cells + rest, out_size)
+        self.by_place = OneHotLinear(categories, out_size)
         self.cell_embedding = nn.Embedding(joint, out_size)
         self.pooled_out = nn.Linear(out_size, out_size)
 
@@ -213,10 +208,7 @@ class CellEncoder(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """(..., D) integer-valued observations -> (..., E) features."""
-        cells, rest = self.layout.split(obs)
-        index = self._categories(cells)
-        by_place = self.by_place(torch.cat((index, rest.long()), dim=-1))
-        return by_place + self.pooled_out(self._pool(index))
+        return self.by_place(obs) + self.pooled_out(self.pooled(obs))
 
 
 class GridEncoder(nn.Module):
