@@ -96,6 +96,18 @@ def test_resume_with_different_config_is_refused(tmp_path, capsys):
     assert_one_line_error(capsys, code, "config differs", "learning_rate")
 
 
+def test_resume_takes_the_saved_settings_so_run_dir_and_total_steps_are_enough(tmp_path):
+    settings = ["--seed", "4", "--learning-rate", "0.002", "--ent-coef", "0.03"]
+    reference = train(tmp_path, "reference", "--total-steps", "512", *settings)
+    train(tmp_path, "run", "--total-steps", "256", *settings)
+    # No FAST flags and no settings: the run's own (8 envs x 32 steps, lr 0.002, ...) apply.
+    code = run_cli(["train", "--resume", "--run-dir", str(tmp_path / "run"), "--total-steps=512"])
+    assert code == 0
+    resumed = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert resumed["updates"] == 2 and resumed["total_env_steps"] == 512
+    assert without_timing(resumed) == without_timing(reference)
+
+
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "pickle", "renamed"])
 def test_damaged_checkpoint_is_refused(tmp_path, capsys, damage):
     train(tmp_path, "run", "--total-steps", "256")

@@ -160,23 +160,56 @@ def bench(args: BenchArgs) -> None:
     print(f"next: thci report {root}")
 
 
+def _flag_value(argv: list[str], name: str) -> str | None:
+    """The value of ``--name VALUE`` or ``--name=VALUE`` (hyphens or underscores) in `argv`."""
+    spellings = {name, name.replace("-", "_")}
+    for i, arg in enumerate(argv):
+        flag, equals, value = arg.partition("=")
+        if flag in spellings:
+            return value if equals else (argv[i + 1] if i + 1 < len(argv) else None)
+    return None
+
+
+def saved_train_config(argv: list[str]) -> TrainConfig | None:
+    """For ``thci train --resume --run-dir DIR``: the settings saved in DIR, which the command
+    line then only overrides, so that those two flags are enough to continue a run (and a
+    flag that may not change on resume still gets the "config differs" error). None for any
+    other command, or when DIR holds no config (the trainer then says what is missing)."""
+    if not argv or argv[0] != "train" or "--resume" not in argv:
+        return None
+    run_dir = _flag_value(argv, "--run-dir")
+    if run_dir is None:
+        return None
+    from thci.experiments.run_dir import RunDirectory
+
+    run = RunDirectory(Path(run_dir))
+    return run.read_config() if run.config_path.is_file() else None
+
+
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``thci`` console script."""
-    args = tyro.extras.subcommand_cli_from_dict(
-        {
-            "train": TrainConfig,
-            "evaluate": EvaluateArgs,
-            "envs": EnvsArgs,
-            "demo": DemoArgs,
-            "bench": BenchArgs,
-            "report": ReportArgs,
-            "heatmap": HeatmapArgs,
-        },
-        args=argv,
-        prog="thci",
-        description="History-based RL with causal memory (T-HCI).",
-    )
+    argv = sys.argv[1:] if argv is None else argv
     try:
+        saved = saved_train_config(argv)
+        if saved is not None:
+            args: Any = tyro.cli(
+                TrainConfig, args=argv[1:], default=saved, prog="thci train", description=""
+            )
+        else:
+            args = tyro.extras.subcommand_cli_from_dict(
+                {
+                    "train": TrainConfig,
+                    "evaluate": EvaluateArgs,
+                    "envs": EnvsArgs,
+                    "demo": DemoArgs,
+                    "bench": BenchArgs,
+                    "report": ReportArgs,
+                    "heatmap": HeatmapArgs,
+                },
+                args=argv,
+                prog="thci",
+                description="History-based RL with causal memory (T-HCI).",
+            )
         run_command(args)
     except ThciError as exc:
         print(f"thci: error: {exc}", file=sys.stderr)

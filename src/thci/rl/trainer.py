@@ -337,8 +337,7 @@ def _train(
             ci.close()
         if isinstance(exc, KeyboardInterrupt):
             raise ThciError(
-                f"interrupted; continue with: thci train --resume --run-dir {run.path} "
-                "(and the same settings)"
+                f"interrupted; continue with: thci train --resume --run-dir {run.path}"
             ) from None
         raise
     finally:
