@@ -8,8 +8,9 @@ import pytest
 from gymnasium import spaces
 from test_cli import FAST, run_cli
 
-from thci.envs.factory import make_vector_env
+from thci.envs.factory import CELL_LAYOUT_KEY, make_vector_env
 from thci.errors import ThciError
+from thci.rl.encoders import observation_categories
 
 
 class _MissionOnly(gym.Env):
@@ -29,6 +30,24 @@ class _MissionOnly(gym.Env):
 gym.register("ThciTest/MissionOnly-v0", entry_point=_MissionOnly)
 
 
+def _minigrid(wrapper: str, **kwargs):
+    """MiniGrid-Empty-5x5-v0 under one of minigrid's wrappers, or a bad image."""
+    import minigrid.wrappers
+
+    env = gym.make("MiniGrid-Empty-5x5-v0")
+    if wrapper == "painted":  # declared like minigrid's image, holding values no cell has
+        return gym.wrappers.TransformObservation(
+            env,
+            lambda obs: {**obs, "image": np.full_like(obs["image"], 200)},
+            env.observation_space,
+        )
+    return getattr(minigrid.wrappers, wrapper)(env, **kwargs)
+
+
+for _name in ("FullyObsWrapper", "RGBImgPartialObsWrapper", "painted"):
+    gym.register(f"ThciTest/MiniGrid-{_name}-v0", entry_point=_minigrid, kwargs={"wrapper": _name})
+
+
 def test_minigrid_dict_observations_keep_image_and_direction_and_drop_the_mission(capsys):
     envs = make_vector_env("minigrid:MiniGrid-Empty-5x5-v0", 2)
     try:
@@ -38,6 +57,48 @@ def test_minigrid_dict_observations_keep_image_and_direction_and_drop_the_missio
     finally:
         envs.close()
     assert "['mission'] are ignored" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("env_id", "layout", "cell_highs"),
+    [
+        ("minigrid:MiniGrid-Empty-5x5-v0", (4, 49, 3), [10, 5, 3]),  # heading first, 7x7 view
+        ("ThciTest/MiniGrid-FullyObsWrapper-v0", (4, 25, 3), [10, 5, 3]),  # the whole 5x5 grid
+        ("ThciTest/MiniGrid-RGBImgPartialObsWrapper-v0", None, [255, 255, 255]),  # pixels
+    ],
+)
+def test_minigrid_cell_images_get_their_cells_bounds_and_layout(env_id, layout, cell_highs):
+    envs = make_vector_env(env_id, 2)
+    try:
+        space = envs.single_observation_space
+        assert envs.metadata.get(CELL_LAYOUT_KEY) == layout
+        offset = 4 if layout is None else layout[0]
+        assert space.high[offset : offset + 3].tolist() == cell_highs
+        # Bounded cells are categories (one-hot, --encoder cells); pixels stay magnitudes.
+        assert (observation_categories(space) is not None) == (layout is not None)
+        obs, _ = envs.reset(seed=0)
+        for _ in range(30):  # the agent's own cell (full view) holds its heading 0..3 as state
+            obs, *_ = envs.step(envs.action_space.sample())
+            assert np.all(obs <= space.high)
+    finally:
+        envs.close()
+
+
+def test_a_minigrid_image_with_values_no_cell_has_is_refused():
+    envs = make_vector_env("ThciTest/MiniGrid-painted-v0", 1)
+    try:
+        with pytest.raises(ThciError, match="not minigrid's cell encoding"):
+            envs.reset(seed=0)
+    finally:
+        envs.close()
+
+
+def test_cells_encoder_finds_a_minigrid_image_without_a_cell_layout(tmp_path):
+    run = ["--env", "minigrid:MiniGrid-Empty-5x5-v0", "--run-dir", str(tmp_path / "run")]
+    code = run_cli(["train", *run, *FAST, "--total-steps", "512", "--encoder", "cells"])
+    assert code == 0
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert config["cell_layout"] == [4, 49, 3]
 
 
 @pytest.mark.parametrize(

@@ -16,6 +16,8 @@ from typing import Any, Literal
 from thci.errors import ThciError
 
 EncoderKind = Literal["flat", "grid", "cells"]
+# minigrid's 7x7 view of (object, colour, state) cells first: the thci/BabyAI levels' layout.
+DEFAULT_CELL_LAYOUT = (0, 49, 3)
 """The agent's first layer (``--encoder``; :func:`thci.rl.encoders.make_encoder`)."""
 
 Method = Literal["lstm", "gru", "mlp", "nm", "wmg", "sai", "hai", "oracle", "t-hci", "hci"]
@@ -216,11 +218,12 @@ class TrainConfig:
     discretizer: Literal["auto", "exact", "simhash", "cell-set"] = "auto"
     """How observations become codes: exact bytes, SimHash, the set of cell values in view
     (images of categorical cells, e.g. minigrid's), or chosen from the data (exact or SimHash)."""
-    cell_layout: tuple[int, int, int] = (0, 49, 3)
-    """For ``cell-set``: entries before the first cell, cells, and values per cell of a flat
-    observation; the other entries are coded exactly. Default: minigrid's 7x7 view of (object,
-    colour, state) cells first, as in the thci/BabyAI levels; a minigrid env flattened by thci
-    puts its one-hot direction first: 4 49 3."""
+    cell_layout: tuple[int, int, int] | None = None
+    """For ``cell-set`` and the grid / cells encoders: entries before the first cell, cells,
+    and values per cell of a flat observation; the other entries are coded exactly. Default:
+    where the environment's image lies (a minigrid env flattened by thci: after its one-hot
+    direction, 4 49 3 for a 7x7 view), else minigrid's 7x7 view first, as in the thci/BabyAI
+    levels (0 49 3); the run's config.json records the layout used."""
 
     # Success and solving
     solve_threshold: float = 0.9
@@ -321,7 +324,7 @@ class TrainConfig:
             raise ThciError("--count-memory adds to the count key: it needs --exploration")
         if self.ci_min_support < 1:
             raise ThciError(f"--ci-min-support must be >= 1, got {self.ci_min_support}")
-        offset, *sizes = self.cell_layout
+        offset, *sizes = self.cell_layout or DEFAULT_CELL_LAYOUT
         if len(sizes) != 2 or offset < 0 or min(sizes) < 1:
             raise ThciError(
                 "--cell-layout takes three integers (offset >= 0, cells >= 1, values per "
@@ -362,13 +365,16 @@ class TrainConfig:
             values.setdefault("ci_first_lag", values.get("ci_lag", cls.ci_lag))
         if values.get("run_dir") is not None:
             values["run_dir"] = Path(values["run_dir"])
-        if "cell_layout" in values:  # JSON has no tuples
+        if values.get("cell_layout") is not None:  # JSON has no tuples
             values["cell_layout"] = tuple(values["cell_layout"])
         return cls(**values)
 
     def differences(self, other: TrainConfig) -> list[str]:
-        """Names of fields that differ and may not differ on resume."""
+        """Names of fields that differ and may not differ on resume. A ``cell_layout`` left
+        to the environment (None) matches the layout a run recorded for it."""
         mine, theirs = self.to_dict(), other.to_dict()
+        if None in (mine["cell_layout"], theirs["cell_layout"]):
+            mine["cell_layout"] = theirs["cell_layout"]
         return [k for k in mine if k not in RESUMABLE_DIFFERENCES and mine[k] != theirs[k]]
 
 

@@ -10,6 +10,10 @@ its id, or pass ``"my_package.my_module:MyEnv-v0"`` and gymnasium imports the mo
 ``Dict`` observations (e.g. minigrid's ``{"image", "direction", "mission"}``) keep their
 ``Box`` / ``Discrete`` / ``MultiDiscrete`` entries, flattened into one vector; other entries
 (the mission ``Text``) are ignored, and a note names them.
+
+minigrid declares its image of (object, colour, state) cells as 0..255; thci declares the
+bounds the cells really have (:class:`MinigridCells`), so that they are read as categories
+(one-hot, ``--encoder cells``, ``--discretizer cell-set``) and not as magnitudes.
 """
 
 from __future__ import annotations
@@ -17,8 +21,10 @@ from __future__ import annotations
 import difflib
 import importlib
 import sys
+from typing import Any
 
 import gymnasium as gym
+import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, SyncVectorEnv, VectorEnv
 from gymnasium.wrappers import FilterObservation, FlattenObservation
@@ -26,6 +32,8 @@ from gymnasium.wrappers import FilterObservation, FlattenObservation
 from thci.errors import ThciError
 
 SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete)
+# The vector env's metadata entry that says where an image of cells lies in its observations.
+CELL_LAYOUT_KEY = "thci_cell_layout"
 _NOTED: set[str] = set()  # env ids whose ignored Dict entries were already reported
 
 
@@ -119,6 +127,9 @@ def make_vector_env(
     except ThciError:
         envs.close()
         raise
+    layout = flat_cell_layout(envs.envs[0])
+    if layout is not None:  # a copy: the dict may be the environment class's own
+        envs.metadata = {**envs.metadata, CELL_LAYOUT_KEY: layout}
     return envs
 
 
@@ -144,10 +155,90 @@ def _native_problem(envs: VectorEnv) -> str | None:
     return None
 
 
+class MinigridCells(gym.ObservationWrapper):
+    """minigrid's cell image with the bounds its cells have instead of 0..255.
+
+    A minigrid image holds, per cell, the object, colour and state indices (at most 10, 5
+    and 2; in a full view from ``FullyObsWrapper`` the agent's cell holds its heading, 0..3,
+    as state). Declared 0..255, it would be read as magnitudes. Values beyond the bounds
+    (an image that is not minigrid's encoding after all) raise a ThciError.
+
+    Args:
+        env: a minigrid environment, possibly wrapped.
+        key: the Dict entry holding the image, or None when the observation is the image.
+    """
+
+    def __init__(self, env: gym.Env, key: str | None) -> None:
+        super().__init__(env)
+        from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX
+
+        self.key = key
+        image = env.observation_space if key is None else env.observation_space[key]
+        self.high = np.array([max(OBJECT_TO_IDX.values()), max(COLOR_TO_IDX.values()), 3])
+        tight = spaces.Box(
+            0, np.broadcast_to(self.high, image.shape).astype(np.uint8), dtype=np.uint8
+        )
+        if key is None:
+            self.observation_space = tight
+        else:
+            self.observation_space = spaces.Dict({**env.observation_space.spaces, key: tight})
+
+    def observation(self, observation: Any) -> Any:
+        image = observation if self.key is None else observation[self.key]
+        if np.any(image.reshape(-1, 3).max(axis=0) > self.high):
+            raise ThciError(
+                f"a minigrid image holds values above the cell bounds {self.high.tolist()} "
+                "(object, colour, state): it is not minigrid's cell encoding; wrap the "
+                "environment to declare its own observation space"
+            )
+        return observation
+
+
+def minigrid_image_key(env: gym.Env) -> tuple[bool, str | None]:
+    """Whether `env` gives minigrid's cell image declared 0..255, and its Dict key (None: the
+    observation is the image). Pixel images (minigrid's RGB wrappers) have other shapes."""
+    minigrid_env = sys.modules.get("minigrid.minigrid_env")
+    if minigrid_env is None or not isinstance(env.unwrapped, minigrid_env.MiniGridEnv):
+        return False, None
+    base = env.unwrapped
+    shapes = {(base.agent_view_size, base.agent_view_size, 3), (base.width, base.height, 3)}
+    space = env.observation_space
+    key = "image" if isinstance(space, spaces.Dict) and "image" in space.spaces else None
+    image = space if key is None else space[key]
+    found = (
+        isinstance(image, spaces.Box)
+        and image.dtype == np.uint8
+        and image.shape in shapes
+        and bool(np.all(image.high == 255))
+    )
+    return found, key
+
+
+def flat_cell_layout(env: gym.Env) -> tuple[int, int, int] | None:
+    """(offset, cells, 3): where a minigrid image lies in the flat observation that
+    :func:`make_vector_env` makes of `env` (a single env as built there), or None."""
+    while isinstance(env, gym.Wrapper) and not isinstance(env, MinigridCells):
+        env = env.env
+    if not isinstance(env, MinigridCells):
+        return None
+    space = env.observation_space
+    image = space if env.key is None else space[env.key]
+    cells = image.shape[0] * image.shape[1]
+    if env.key is None:
+        return (0, cells, 3)
+    # The used entries in the Dict's order, which FilterObservation and FlattenObservation keep.
+    used, _ = usable_keys(space)
+    offset = sum(spaces.flatdim(space[k]) for k in used[: used.index(env.key)])
+    return (offset, cells, 3)
+
+
 def _flat_env_factory(env_id: str, env_kwargs: dict[str, object]):
     def make() -> gym.Env:
         env = gym.make(env_id, **env_kwargs)
         check_spaces(env.observation_space, env.action_space, env_id)
+        is_minigrid, key = minigrid_image_key(env)
+        if is_minigrid:
+            env = MinigridCells(env, key)
         if isinstance(env.observation_space, spaces.Dict):
             used, ignored = usable_keys(env.observation_space)
             if ignored and env_id not in _NOTED:  # said once per environment id

@@ -287,8 +287,8 @@ def make_encoder(
     if categories is None:
         raise ThciError(
             f"--encoder {kind} reads images of small integer cells (a Box of integers with "
-            f"bounds 0..{MAX_VALUES_PER_DIM - 1}); these observations are not (minigrid's own "
-            f"image is declared 0..255: wrap it with tight bounds, README) or use --encoder flat"
+            f"bounds 0..{MAX_VALUES_PER_DIM - 1}, as thci declares minigrid's images); these "
+            f"observations are not: declare their bounds (README) or use --encoder flat"
         )
     if kind == "grid":
         return GridEncoder(observation_size, cell_layout, categories, out_size)

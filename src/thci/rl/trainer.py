@@ -23,8 +23,14 @@ import thci
 from thci.causal.gate import Gate, GateSpec
 from thci.causal.loop import CausalInferenceLoop, CIWorker, start_ci_worker
 from thci.causal.taie import kept_observations, measure_taie
-from thci.config import CAUSAL_METHODS, GATED_METHODS, WEIGHING_METHODS, TrainConfig
-from thci.envs.factory import make_vector_env
+from thci.config import (
+    CAUSAL_METHODS,
+    DEFAULT_CELL_LAYOUT,
+    GATED_METHODS,
+    WEIGHING_METHODS,
+    TrainConfig,
+)
+from thci.envs.factory import CELL_LAYOUT_KEY, make_vector_env
 from thci.errors import ThciError
 from thci.experiments.run_dir import (
     MetricsLog,
@@ -57,6 +63,7 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
 
     T-HCI and HCI use the causal memory: an LSTM behind a gate fitted by the CI loop.
     """
+    config = with_cell_layout(config, envs)
     causal = config.method in CAUSAL_METHODS
     observation_size = int(envs.single_observation_space.shape[0])
     memory = make_memory(
@@ -119,6 +126,7 @@ def train(config: TrainConfig) -> dict[str, Any]:
     envs = None
     try:
         envs = make_vector_env(config.env, config.num_envs, config.vectorization)
+        config = with_cell_layout(config, envs)
         _check_info_keys(config, envs)
         config = dataclasses.replace(config, run_dir=config.run_dir or default_run_dir(config))
         assert config.run_dir is not None
@@ -134,6 +142,16 @@ def train(config: TrainConfig) -> dict[str, Any]:
             envs.close()
         if worker is not None:
             worker.close()
+
+
+def with_cell_layout(config: TrainConfig, envs: VectorEnv) -> TrainConfig:
+    """`config` with ``cell_layout`` filled in when it was left to the environment: where
+    :func:`~thci.envs.factory.make_vector_env` found a minigrid image, else
+    ``DEFAULT_CELL_LAYOUT`` (the thci/BabyAI levels'). The run's config.json records it."""
+    if config.cell_layout is not None:
+        return config
+    layout = envs.metadata.get(CELL_LAYOUT_KEY, DEFAULT_CELL_LAYOUT)
+    return dataclasses.replace(config, cell_layout=tuple(layout))
 
 
 # What a memory's side input means, for the error when the environment does not report it.
