@@ -386,3 +386,26 @@ def test_expert_solves_every_seed(level: int, capfd: pytest.CaptureFixture[str])
     # Rejected layouts along the way print nothing (minigrid's RoomGridLevel would).
     assert capfd.readouterr().out == ""
     assert np.mean(lengths) < limit / 3
+
+
+@pytest.mark.parametrize("level", LEVELS)
+def test_observations_are_minigrids_own_bit_for_bit(level):
+    from minigrid.minigrid_env import MiniGridEnv
+
+    env = make_babyai_env(level).unwrapped
+    rng = np.random.default_rng(level)
+    carried = seen_open_door = 0
+    for episode in range(12):
+        env.reset(seed=episode)
+        done = False
+        while not done:
+            action = int(rng.choice(6, p=[0.2, 0.2, 0.3, 0.1, 0.05, 0.15]))
+            obs, _, terminated, truncated, _ = env.step(action)
+            done = terminated or truncated
+            assert np.array_equal(obs["image"], MiniGridEnv.gen_obs(env)["image"])
+            carried += env.carrying is not None
+            seen_open_door += bool(
+                np.any((obs["image"][..., 0] == 4) & (obs["image"][..., 2] == 0))
+            )
+    # The comparison covered what changes a view: open doors, and objects carried (L2-L4).
+    assert seen_open_door > 0 and (carried > 0 or level == 1)
