@@ -16,9 +16,11 @@ from typing import Any, Literal
 from thci.errors import ThciError
 
 EncoderKind = Literal["flat", "grid", "cells"]
-# minigrid's 7x7 view of (object, colour, state) cells first: the thci/BabyAI levels' layout.
-DEFAULT_CELL_LAYOUT = (0, 49, 3)
 """The agent's first layer (``--encoder``; :func:`thci.rl.encoders.make_encoder`)."""
+
+DEFAULT_CELL_LAYOUT = (0, 49, 3)
+"""``--cell-layout`` where the environment names none: minigrid's 7x7 view of (object, colour,
+state) cells first, as in the thci/BabyAI levels."""
 
 Method = Literal["lstm", "gru", "mlp", "nm", "wmg", "sai", "hai", "oracle", "t-hci", "hci"]
 CAUSAL_METHODS = ("t-hci", "hci")

@@ -289,7 +289,8 @@ class BabyAILevel(RoomGridLevel):
     def gen_obs(self) -> dict[str, Any]:
         """minigrid's observation (the same arrays, bit for bit: a test compares them), built
         from the 49 cells in view instead of sliced, rotated and masked copies of the grid:
-        minigrid's own took ~60% of an environment step (cProfile of a BabyAI-L1 training)."""
+        minigrid's own took 8.6 s of the 9.7 s of environment steps in a cProfile of a
+        BabyAI-L1 training (32k steps); this one ~0.45x its time per view."""
         size = self.agent_view_size
         top_x, top_y, _, _ = self.get_view_exts()
         width, height, cells = self.grid.width, self.grid.height, self.grid.grid
