@@ -1,4 +1,4 @@
-"""The ``thci`` command line: train, evaluate, envs, demo, bench, report, heatmap.
+"""The ``thci`` command line: train, evaluate, taie, envs, demo, bench, report, heatmap.
 
 User mistakes raise :class:`~thci.errors.ThciError`; :func:`main` prints its one line and
 exits with status 2, so no traceback is ever shown for them.
@@ -29,6 +29,22 @@ class EvaluateArgs:
     """Take the most likely action instead of sampling from the policy (the trained one)."""
     seed: int = 10_000
     """Seed of the evaluation episodes."""
+
+
+@dataclass
+class TaieArgs:
+    """TAIE (the paper's Table 2) of a trained run's memory against info["causal"]; writes
+    RUN_DIR/taie.json."""
+
+    run_dir: Annotated[Path, tyro.conf.Positional]
+    """Run directory written by `thci train` (method t-hci, hci, sai, hai or oracle)."""
+    trajectories: Literal["auto", "expert", "greedy"] = "auto"
+    """expert: the environment's expert_action() (pi*, as the paper defines TAIE; the BabyAI
+    levels have one); greedy: the run's own policy; auto: expert when the env has one."""
+    episodes: int = 100
+    """Trajectories to average over."""
+    seed: int = 20_000
+    """Seed of the episodes."""
 
 
 @dataclass
@@ -97,9 +113,12 @@ def format_table(rows: dict[str, Any]) -> str:
     return "\n".join([lines[0], *lines[1:], lines[0]])
 
 
-def run_command(
-    args: TrainConfig | EvaluateArgs | EnvsArgs | DemoArgs | BenchArgs | ReportArgs | HeatmapArgs,
-) -> None:
+Command = (
+    TrainConfig | EvaluateArgs | TaieArgs | EnvsArgs | DemoArgs | BenchArgs | ReportArgs
+) | HeatmapArgs
+
+
+def run_command(args: Command) -> None:
     """Execute one parsed command."""
     if isinstance(args, TrainConfig):
         from thci.rl.trainer import train
@@ -110,6 +129,10 @@ def run_command(
         from thci.rl.evaluate import evaluate
 
         print(format_table(evaluate(args.run_dir, args.episodes, args.greedy, args.seed)))
+    elif isinstance(args, TaieArgs):
+        from thci.rl.evaluate import taie_of_run
+
+        print(format_table(taie_of_run(args.run_dir, args.episodes, args.trajectories, args.seed)))
     elif isinstance(args, DemoArgs):
         from thci.experiments.demo import confounding_demo
 
@@ -200,6 +223,7 @@ def main(argv: list[str] | None = None) -> None:
                 {
                     "train": TrainConfig,
                     "evaluate": EvaluateArgs,
+                    "taie": TaieArgs,
                     "envs": EnvsArgs,
                     "demo": DemoArgs,
                     "bench": BenchArgs,

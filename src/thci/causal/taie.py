@@ -1,8 +1,12 @@
 """Timely Averaged Inference Error (TAIE, the paper's Table 2).
 
-TAIE = E_τ [ Σ_t |ν(o_t) − ν*(o_t)| / T_τ ] over trajectories τ of the trained policy, where
-ν(o_t) is the method's weight on observation o_t and ν*(o_t) is the human label
-(``info["causal"]``). A perfect gate scores 0, an inverted one 1. ν is, per method:
+TAIE = E_τ [ Σ_t |ν(o_t) − ν*(o_t)| / T_τ ], where ν(o_t) is the method's weight on
+observation o_t and ν*(o_t) is the human label (``info["causal"]``). A perfect gate scores 0,
+an inverted one 1. The paper takes τ ~ π*, the optimal policy: thci does so for environments
+that offer an expert (``expert_action()``, e.g. the BabyAI levels), and otherwise uses the
+trained policy's greedy trajectories, which are π*'s once the policy solves the task. The
+difference matters for a policy that does not solve it: its own trajectories may never reach
+the observations that decide success. ν is, per method:
 
 * causal memory (t-hci, hci): 1 if the gate keeps o_t, 0 if it removes it;
 * oracle: the label itself (TAIE 0 by construction, a check of the plumbing);
@@ -14,13 +18,17 @@ TAIE = E_τ [ Σ_t |ν(o_t) − ν*(o_t)| / T_τ ] over trajectories τ of the t
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Literal
+
 import numpy as np
 import torch
 
 from thci.causal.gate import Gate
 from thci.envs.factory import make_vector_env
+from thci.errors import ThciError
 from thci.rl.agent import ActorCritic
-from thci.rl.rollout import Rollout, RolloutCollector
+from thci.rl.rollout import Rollout, RolloutCollector, has_expert
 from thci.rl.sequences import cut_into_segments
 
 
@@ -100,6 +108,25 @@ def kept_observations(agent: ActorCritic, rollout: Rollout) -> np.ndarray:
     return (observation_weights(agent, rollout.inputs, rollout.episode_starts) >= 0.5).numpy()
 
 
+Trajectories = Literal["auto", "expert", "greedy"]
+
+
+@dataclass(frozen=True)
+class Taie:
+    """A TAIE measurement: `value` (one per attention head for SAI; None when the environment
+    gives no labels) over `episodes` trajectories of `trajectories` ("expert" or "greedy")."""
+
+    value: float | list[float] | None
+    trajectories: str
+    episodes: int
+
+    def rounded(self, digits: int = 4) -> float | list[float] | None:
+        """`value` rounded for summaries and tables."""
+        if isinstance(self.value, list):
+            return [round(v, digits) for v in self.value]
+        return None if self.value is None else round(self.value, digits)
+
+
 @torch.no_grad()
 def measure_taie(
     agent: ActorCritic,
@@ -107,28 +134,39 @@ def measure_taie(
     episodes: int = 100,
     seed: int = 20_000,
     vectorization: str = "auto",
-    greedy: bool = True,
+    trajectories: Trajectories = "auto",
     gate: Gate | None = None,
-) -> float | list[float] | None:
-    """TAIE of the agent over `episodes` greedy trajectories; one value per attention head for
-    SAI; None when the environment gives no labels. With `gate`, the agent still acts with its
-    own memory, and ν is that gate's."""
-    envs = make_vector_env(env_id, min(16, episodes), vectorization)
+) -> Taie:
+    """TAIE of the agent over `episodes` trajectories: the environment's expert's ("expert";
+    "auto" picks it when the environment has one) or the agent's own greedy ones ("greedy").
+    With `gate`, the agent's memory still runs as trained, and ν is that gate's."""
+    if episodes <= 0:
+        raise ThciError(f"TAIE needs a positive number of episodes, got {episodes}")
+    if trajectories not in ("auto", "expert", "greedy"):
+        raise ThciError(f"trajectories must be auto, expert or greedy, got {trajectories!r}")
+    # The expert is read from each sub-environment: a native vector env has none.
+    envs = make_vector_env(
+        env_id, min(16, episodes), "sync" if trajectories == "expert" else vectorization
+    )
     try:
+        expert = trajectories == "expert" or (trajectories == "auto" and has_expert(envs))
         # Only episodes that start and end inside one rollout count: 512 steps hold at least one
         # of every built-in level (BabyAI-L4 episodes last up to 250 steps), so this terminates.
-        collector = RolloutCollector(envs, agent, num_steps=512, gamma=0.99, greedy=greedy)
+        collector = RolloutCollector(
+            envs, agent, num_steps=512, gamma=0.99, greedy=True, expert=expert
+        )
         collector.reset(seed)
         errors: list[torch.Tensor] = []
         while sum(len(e) for e in errors) < episodes:
             rollout, _ = collector.collect()
             if rollout.causal is None:
-                return None
+                return Taie(None, "expert" if expert else "greedy", 0)
             weights = observation_weights(agent, rollout.inputs, rollout.episode_starts, gate)
             errors.append(
                 taie_of_rollout(weights, rollout.causal, rollout.episode_starts, rollout.dones)
             )
         taie = torch.cat(errors)[:episodes].mean(dim=0)
-        return float(taie) if taie.dim() == 0 else taie.tolist()
+        value = float(taie) if taie.dim() == 0 else taie.tolist()
+        return Taie(value, "expert" if expert else "greedy", episodes)
     finally:
         envs.close()

@@ -158,6 +158,9 @@ class BabyAILevel(RoomGridLevel):
     ball room), ``signpost_pos`` ((x, y) grid cell), ``target_color``, ``target_ball``,
     ``door_a`` / ``door_b`` (the doors between M and A / B), ``signpost_seen`` (the signpost
     was in view at some step of this episode so far).
+
+    :meth:`expert_action` is the action of a privileged expert (:class:`BabyAIExpert`), the
+    π* over whose trajectories the paper defines TAIE (Table 2).
     """
 
     LEVEL: ClassVar[int]
@@ -177,6 +180,7 @@ class BabyAILevel(RoomGridLevel):
         )
         self.action_space = spaces.Discrete(len(ACTION_NAMES))
         self.signpost_seen = False
+        self._expert: BabyAIExpert | None = None
 
     # ------------------------------------------------------------------ layout generation
 
@@ -272,7 +276,18 @@ class BabyAILevel(RoomGridLevel):
         """New random layout; ``info`` as in the module docstring."""
         obs, _ = super().reset(seed=seed, options=options)
         self.signpost_seen = False
+        self._expert = None  # its cached plan belongs to the previous layout
         return obs, self._info(obs, success=False)
+
+    def expert_action(self) -> int:
+        """The scripted expert's next action in the current state (call once per step).
+
+        Any environment whose unwrapped class defines ``expert_action() -> int`` gets its TAIE
+        measured over the expert's trajectories, as the paper defines it (``thci taie``).
+        """
+        if self._expert is None:
+            self._expert = BabyAIExpert(self)
+        return self._expert.act()
 
     def step(self, action: int | np.integer) -> tuple[dict[str, Any], float, bool, bool, dict]:
         """minigrid's step for one of the six actions, with the ``info`` entries added."""

@@ -9,7 +9,8 @@ import numpy as np
 import torch
 from gymnasium.vector import VectorEnv
 
-from thci.config import TrainConfig
+from thci.causal.taie import Trajectories, measure_taie
+from thci.config import WEIGHING_METHODS, TrainConfig
 from thci.envs.factory import make_vector_env
 from thci.errors import ThciError
 from thci.experiments.run_dir import RunDirectory, atomic_write_json
@@ -102,4 +103,31 @@ def evaluate(
         "checkpoint_update": checkpoint["update"],
     }
     atomic_write_json(run_dir / "evaluation.json", result)
+    return result
+
+
+def taie_of_run(
+    run_dir: Path, episodes: int = 100, trajectories: Trajectories = "auto", seed: int = 20_000
+) -> dict[str, Any]:
+    """TAIE of a trained run's memory (:mod:`thci.causal.taie`); writes and returns taie.json's
+    content. `trajectories`: "expert" (π*, as the paper defines TAIE; needs an environment with
+    ``expert_action()``), "greedy" (the run's own policy) or "auto" (expert when available)."""
+    if not run_dir.is_dir():
+        raise ThciError(f"run directory {run_dir} not found")
+    config, envs, agent, checkpoint = load_run(run_dir, 1, seed)
+    envs.close()
+    if config.method not in WEIGHING_METHODS:
+        raise ThciError(f"--method {config.method} keeps every observation: TAIE does not apply")
+    taie = measure_taie(agent, config.env, episodes, seed, config.vectorization, trajectories)
+    if taie.value is None:
+        raise ThciError(f"{config.env} gives no info['causal'] labels: TAIE needs them")
+    result = {
+        "env_id": config.env,
+        "method": config.method,
+        "taie": taie.rounded(),
+        "trajectories": taie.trajectories,
+        "episodes": taie.episodes,
+        "checkpoint_update": checkpoint["update"],
+    }
+    atomic_write_json(run_dir / "taie.json", result)
     return result

@@ -102,6 +102,8 @@ class RolloutCollector:
             sampling from their softmax.
         bootstrap_truncation: credit gamma * V(final observation) to truncated episodes (off
             for DMC, whose targets are plain Monte-Carlo returns).
+        expert: act with the environments' own expert (:func:`has_expert`) instead of the
+            agent, which still runs alongside (its memory sees the expert's trajectories).
     """
 
     def __init__(
@@ -115,8 +117,14 @@ class RolloutCollector:
         info_keys: tuple[str, ...] = (),
         epsilon: float | None = None,
         bootstrap_truncation: bool = True,
+        expert: bool = False,
     ) -> None:
-        self.envs, self.agent = envs, agent
+        if expert and not has_expert(envs):
+            raise ThciError(
+                "this environment has no expert: expert trajectories need an env whose "
+                "unwrapped class defines expert_action() -> int (thci's BabyAI levels do)"
+            )
+        self.envs, self.agent, self.expert = envs, agent, expert
         self.num_envs, self.num_steps, self.gamma = envs.num_envs, num_steps, gamma
         self.success_return, self.greedy = success_return, greedy
         self.info_keys = info_keys
@@ -165,7 +173,9 @@ class RolloutCollector:
             # Sampling from the logits directly: torch.distributions' argument checks cost
             # about as much as the environment step here.
             log_probs = torch.log_softmax(logits, dim=-1)
-            if self.greedy:
+            if self.expert:
+                action = torch.as_tensor(self.envs.call("expert_action"), dtype=torch.long)
+            elif self.greedy:
                 action = logits.argmax(dim=-1)
             elif self.epsilon is not None:
                 explore = torch.rand(N) < self.epsilon
@@ -318,6 +328,15 @@ class RolloutCollector:
             return True
         self.reset(seed)
         return False
+
+
+def has_expert(envs: VectorEnv) -> bool:
+    """Whether every environment of `envs` offers ``expert_action()`` (read through
+    gymnasium's ``call``, which reaches the unwrapped env through any wrappers)."""
+    sub_envs = getattr(envs, "envs", None)  # SyncVectorEnv's; native vector envs have none
+    return bool(sub_envs) and all(
+        callable(getattr(env.unwrapped, "expert_action", None)) for env in sub_envs
+    )
 
 
 def _reached(infos: dict[str, Any], key: str, ended: np.ndarray) -> np.ndarray:

@@ -388,7 +388,7 @@ def _train(
         "mean_return_last100": _finite_or_none(tracker.mean_reward),
         "num_parameters": num_parameters,
         **(ci.summary() if ci is not None else {}),
-        "taie": _taie(agent, config) if config.method in WEIGHING_METHODS else None,
+        **_taie(agent, config),
         **({} if ci is None else {"final_ci": final_ci, "final_ci_seconds": final_ci_seconds}),
         "wall_clock_s": round(wall_clock, 3),
         "steps_per_second": round(global_step / max(wall_clock, 1e-9), 1),
@@ -410,17 +410,18 @@ def checkpoint_mismatch(checkpoint: dict[str, Any], agent: ActorCritic, exc: Exc
     return f"missing {missing[:3]}, unexpected {unexpected[:3]}"
 
 
-def _taie(
-    agent: ActorCritic, config: TrainConfig, gate: Gate | None = None
-) -> float | list[float] | None:
-    """TAIE of the trained agent (of `gate` instead of its own, if given); one value per
-    attention head for SAI."""
+def _taie(agent: ActorCritic, config: TrainConfig, gate: Gate | None = None) -> dict[str, Any]:
+    """summary.json's ``taie`` of the trained agent (of `gate` instead of its own, if given;
+    one value per attention head for SAI) and ``taie_trajectories`` (whose trajectories: the
+    environment's expert when it has one, else the greedy policy's); None for memories that
+    weigh nothing."""
+    if config.method not in WEIGHING_METHODS:
+        return {"taie": None, "taie_trajectories": None}
     taie = measure_taie(
         agent, config.env, seed=config.seed + 20_000, vectorization=config.vectorization, gate=gate
     )
-    if isinstance(taie, list):
-        return [round(v, 4) for v in taie]
-    return None if taie is None else round(taie, 4)
+    value = taie.rounded()
+    return {"taie": value, "taie_trajectories": taie.trajectories if value is not None else None}
 
 
 def _final_inference(
@@ -442,7 +443,7 @@ def _final_inference(
     if final is None:
         return None, None
     fields, gate, seconds = final
-    return {**fields, "taie": _taie(agent, config, gate)}, round(seconds, 3)
+    return {**fields, **_taie(agent, config, gate)}, round(seconds, 3)
 
 
 def write_ci_rounds(run: RunDirectory, ci: CausalInferenceLoop) -> None:
