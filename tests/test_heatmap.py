@@ -1,4 +1,4 @@
-"""`thci heatmap`: the greedy episode it draws, per-head panels, bad input."""
+"""`thci heatmap`: the episode it draws (greedy, or the expert's), per-head panels, bad input."""
 
 import struct
 from pathlib import Path
@@ -11,7 +11,7 @@ from thci.cli import main
 from thci.config import TrainConfig
 from thci.envs import load_maze_level
 from thci.experiments import heatmap as heatmap_module
-from thci.experiments.heatmap import greedy_trajectory, heatmap
+from thci.experiments.heatmap import heatmap, play_trajectory
 from thci.rl.trainer import train
 
 
@@ -34,8 +34,8 @@ def png_width(path: Path) -> int:
 
 
 def test_trajectory_is_a_walk_through_the_maze_from_its_start(run_dir):
-    config, trajectory = greedy_trajectory(run_dir)
-    assert config.method == "t-hci"
+    config, trajectory = play_trajectory(run_dir)
+    assert config.method == "t-hci" and trajectory.played_by == "greedy"  # the maze: no expert
     maze = load_maze_level(1)
     steps = len(trajectory.positions)
     assert 1 <= steps <= 30  # Maze episodes end after at most 30 steps
@@ -54,7 +54,7 @@ def test_one_panel_per_attention_head(run_dir, tmp_path, monkeypatch):
         return torch.rand(obs.shape[0], obs.shape[1], 4)
 
     monkeypatch.setattr(heatmap_module, "observation_weights", four_heads)
-    _, trajectory = greedy_trajectory(run_dir)
+    _, trajectory = play_trajectory(run_dir)
     assert trajectory.weights.shape[1] == 4
     heads = heatmap(run_dir, tmp_path / "heads.png")
     assert png_width(heads) > 2 * png_width(single)  # four panels side by side, not one
@@ -65,3 +65,20 @@ def test_heatmap_of_a_non_run_is_a_one_line_error(tmp_path, capsys):
         main(["heatmap", str(tmp_path)])
     err = capsys.readouterr().err.strip()
     assert exc.value.code == 2 and len(err.splitlines()) == 1 and "config.json" in err
+
+
+def test_babyai_heatmap_follows_the_expert_and_weighs_its_signpost_views(tmp_path):
+    path = tmp_path / "oracle"
+    config = TrainConfig(
+        env="thci/BabyAI-L1-v0", method="oracle", total_steps=256, num_envs=4, num_steps=32,
+        num_minibatches=4, run_dir=path, progress=False,
+    )  # fmt: skip
+    train(config)
+    _, expert = play_trajectory(path, seed=5)
+    assert expert.played_by == "expert"
+    assert expert.reward > 0  # the expert reaches the target ball; the untrained agent would not
+    # The oracle weighs by the labels: the expert looks at the signpost, then walks away from it.
+    assert 0 < expert.weights.sum() < len(expert.weights)
+    _, greedy = play_trajectory(path, seed=5, trajectories="greedy")
+    assert greedy.played_by == "greedy"
+    assert heatmap(path, tmp_path / "expert.png", seed=5).is_file()

@@ -92,7 +92,7 @@ class ReportArgs:
 
 @dataclass
 class HeatmapArgs:
-    """Fig. 8: colour the cells of a greedy episode by the memory's weight on each observation."""
+    """Fig. 8: colour the cells of an episode by the memory's weight on each observation."""
 
     run_dir: Annotated[Path, tyro.conf.Positional]
     """Run directory written by `thci train` (or `thci bench`), on a Maze or BabyAI level."""
@@ -100,6 +100,9 @@ class HeatmapArgs:
     """PNG to write (default: RUN_DIR/heatmap.png)."""
     seed: int = 10_000
     """Seed of the episode."""
+    trajectories: Literal["auto", "expert", "greedy"] = "auto"
+    """Whose episode: the environment's expert (expert_action(); the BabyAI levels have one),
+    the run's greedy agent, or auto: the expert when the environment has one."""
 
 
 def format_table(rows: dict[str, Any]) -> str:
@@ -150,7 +153,7 @@ def run_command(args: Command) -> None:
     elif isinstance(args, HeatmapArgs):
         from thci.experiments.heatmap import heatmap
 
-        print(f"wrote {heatmap(args.run_dir, args.out, args.seed)}")
+        print(f"wrote {heatmap(args.run_dir, args.out, args.seed, args.trajectories)}")
     else:
         import gymnasium as gym
 

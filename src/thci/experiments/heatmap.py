@@ -1,11 +1,13 @@
 """`thci heatmap RUN_DIR`: the paper's Fig. 8, what a trained agent's memory weighs.
 
-Along one greedy episode of the trained agent, every visited grid cell is coloured by the
+Along one episode, every visited grid cell is coloured by the
 weight ν(o_t) the agent's memory put on the observation made there
 (:func:`thci.causal.taie.observation_weights`, the same weights TAIE scores): the gate's keep
 decision for T-HCI, HCI and Oracle, the attention weights for SAI (one panel per head) and HAI,
 1 everywhere for memories that keep everything. The colours lie over a grey rendering of
-the episode's first frame. A cell visited more than once shows its largest weight.
+the episode's first frame. A cell visited more than once shows its largest weight. The episode
+is the environment's expert's when it has one (``expert_action()``: the π* whose trajectories
+TAIE averages over, e.g. on the BabyAI levels), else the trained agent's greedy one.
 
 Works for the built-in grid environments (Maze and BabyAI levels), which report
 ``info["agent_pos"]`` and render ``rgb_array`` frames.
@@ -23,24 +25,24 @@ import numpy as np
 import torch
 
 import thci  # noqa: F401  (registers the environments for gym.make)
-from thci.causal.taie import observation_weights
+from thci.causal.taie import Trajectories, observation_weights
 from thci.config import TrainConfig
 from thci.errors import ThciError
 from thci.experiments.report import env_label
 from thci.experiments.run_dir import atomic_write_bytes
 from thci.rl.evaluate import load_run
-from thci.rl.rollout import RolloutCollector
+from thci.rl.rollout import RolloutCollector, has_expert
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.patches import Rectangle
 
-ROLLOUT_STEPS = 64  # steps collected at a time until the greedy episode ends
+ROLLOUT_STEPS = 64  # steps collected at a time until the episode ends
 
 
 @dataclass
 class Trajectory:
-    """One greedy episode: where each observation was made and the memory's weight on it."""
+    """One episode: where each observation was made and the memory's weight on it."""
 
     positions: np.ndarray
     """(T, 2) [row, col] of the cell where o_t was observed."""
@@ -51,14 +53,20 @@ class Trajectory:
     cell_pixels: float
     """Width of one grid cell in `frame`."""
     reward: float
+    played_by: str
+    """Who chose the actions: "expert" or "greedy" (the trained agent)."""
 
 
-def greedy_trajectory(run_dir: Path, seed: int = 10_000) -> tuple[TrainConfig, Trajectory]:
-    """Play one greedy episode with the run's latest checkpoint and weigh its observations.
+def play_trajectory(
+    run_dir: Path, seed: int = 10_000, trajectories: Trajectories = "auto"
+) -> tuple[TrainConfig, Trajectory]:
+    """Play one episode and weigh its observations with the run's latest checkpoint.
 
-    The episode is played by the same collector as training (so memories that read side inputs
-    get them), then its actions are replayed in a rendering copy of the environment, seeded
-    alike, to get the picture and the positions; the two must agree step by step.
+    `trajectories`: "expert" (the environment's ``expert_action()``), "greedy" (the run's
+    agent) or "auto" (expert when the environment has one). The episode is played by the same
+    collector as training (so memories that read side inputs get them), then its actions are
+    replayed in a rendering copy of the environment, seeded alike, to get the picture and the
+    positions; the two must agree step by step.
     """
     config, envs, agent, _ = load_run(run_dir, 1, seed)
     try:
@@ -68,8 +76,15 @@ def greedy_trajectory(run_dir: Path, seed: int = 10_000) -> tuple[TrainConfig, T
                 f"{config.env} reports no info['agent_pos']: a heatmap needs a grid environment "
                 "such as the built-in Maze and BabyAI levels"
             )
+        expert = trajectories == "expert" or (trajectories == "auto" and has_expert(envs))
         collector = RolloutCollector(
-            envs, agent, ROLLOUT_STEPS, config.gamma, greedy=True, info_keys=("agent_pos",)
+            envs,
+            agent,
+            ROLLOUT_STEPS,
+            config.gamma,
+            greedy=True,
+            info_keys=("agent_pos",),
+            expert=expert,
         )
         collector.reset(seed)
         rollouts = []
@@ -86,7 +101,8 @@ def greedy_trajectory(run_dir: Path, seed: int = 10_000) -> tuple[TrainConfig, T
     reached = np.concatenate([r.reached_info["agent_pos"] for r in rollouts])[:length, 0]
     reward = float(torch.cat([r.env_rewards for r in rollouts])[:length, 0].sum())
     positions, frame, cell = _replay(config.env, seed, actions, reached)
-    return config, Trajectory(positions, weights, frame, cell, reward)
+    played_by = "expert" if expert else "greedy"
+    return config, Trajectory(positions, weights, frame, cell, reward, played_by)
 
 
 def _replay(
@@ -106,7 +122,7 @@ def _replay(
         env.close()
     if not np.array_equal(np.array(positions[1:]), reached):
         raise ThciError(
-            f"{env_id} did not repeat the greedy episode when replayed with the same seed; "
+            f"{env_id} did not repeat the episode when replayed with the same seed; "
             "a heatmap needs an environment that is deterministic given its seed"
         )
     return np.array(positions[:-1]), frame, frame.shape[0] / rows
@@ -153,7 +169,7 @@ def draw_heatmap(config: TrainConfig, trajectory: Trajectory, path: Path) -> Non
         shrink=0.8,
     )
     figure.suptitle(
-        f"{config.method} on {env_label(config.env)}: a greedy episode of "
+        f"{config.method} on {env_label(config.env)}: an {trajectory.played_by} episode of "
         f"{len(trajectory.positions)} steps, return {trajectory.reward:.2f}"
     )
     buffer = io.BytesIO()
@@ -162,9 +178,11 @@ def draw_heatmap(config: TrainConfig, trajectory: Trajectory, path: Path) -> Non
     atomic_write_bytes(path, buffer.getvalue())
 
 
-def heatmap(run_dir: Path, out: Path | None = None, seed: int = 10_000) -> Path:
+def heatmap(
+    run_dir: Path, out: Path | None = None, seed: int = 10_000, trajectories: Trajectories = "auto"
+) -> Path:
     """Write the Fig. 8 heatmap of the run (default RUN_DIR/heatmap.png); returns its path."""
-    config, trajectory = greedy_trajectory(run_dir, seed)
+    config, trajectory = play_trajectory(run_dir, seed, trajectories)
     path = out or run_dir / "heatmap.png"
     draw_heatmap(config, trajectory, path)
     return path
