@@ -1,0 +1,138 @@
+"""What does a network need to make BabyAI-L1's choice? A supervised probe at the choice steps.
+
+A *choice step* is one where the scripted expert's action depends on which ball is the target:
+a copy of the level with target and decoy swapped asks the expert again, and the two answers
+differ. At the choice steps of expert episodes that have shown the signpost, an MLP is fitted
+to the expert's action from the current view plus one of several forms of the signpost, and
+scored on held-out choice steps:
+
+* ``none``: the current view only (what a memoryless agent has);
+* ``view``: the last signpost view, one-hot per entry (what a memory of raw views holds);
+* ``colour``: the signpost's colour, 6-way one-hot (the answer, extracted);
+* ``cells``: the signpost view's set of whole cells, multi-hot over (object, colour, state),
+  position-free (what ``--encoder cells`` pools).
+
+    .venv/bin/python benchmarks/choice_probe.py [--episodes 2500] [--epochs 150] [--hidden 256]
+
+Writes benchmarks/results/choice_probe_{HIDDEN}.json and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tqdm import tqdm
+
+import thci.envs  # noqa: F401  (registers the ids)
+from thci.envs.babyai import BabyAIExpert
+
+RESULTS = Path(__file__).parent / "results"
+CELLS, VALUES = 49, 12  # a 7x7 view; entries below 12 (objects 0..10, colours 0..5, states 0..2)
+WALL, GREY = 2, 5
+
+
+def choice_steps(episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(last signpost view (n, 147), current view (n, 147), expert action (n,)) at the choice
+    steps of `episodes` expert episodes on BabyAI-L1."""
+    env = gym.make("thci/BabyAI-L1-v0")
+    signs, views, actions = [], [], []
+    for episode in tqdm(range(episodes), desc="expert episodes", leave=False):
+        obs, info = env.reset(seed=seed + episode)
+        level, done, last_sign = env.unwrapped, False, None
+        while not done:
+            if info["causal"]:
+                last_sign = np.asarray(obs)[: CELLS * 3].copy()
+            action = level.expert_action()
+            twin = copy.deepcopy(level)
+            twin.target_ball, twin.decoy_ball = twin.decoy_ball, twin.target_ball
+            try:
+                other = BabyAIExpert(twin).act()
+            except RuntimeError:  # no plan to the swapped target: not a choice step
+                other = action
+            if action != other and last_sign is not None:
+                signs.append(last_sign)
+                views.append(np.asarray(obs)[: CELLS * 3].copy())
+                actions.append(action)
+            obs, _, terminated, truncated, info = env.step(action)
+            done = terminated or truncated
+    return np.array(signs, dtype=np.int64), np.array(views, dtype=np.int64), np.array(actions)
+
+
+def one_hot_entries(views: np.ndarray) -> torch.Tensor:
+    """(n, 147) entries -> (n, 147 * 12) one-hot per entry."""
+    index = torch.as_tensor(views).clamp(max=VALUES - 1)
+    return torch.nn.functional.one_hot(index, VALUES).flatten(1).float()
+
+
+def signpost_inputs(signs: np.ndarray) -> dict[str, torch.Tensor]:
+    """The forms of the signpost that the probe compares (module docstring)."""
+    cells = signs.reshape(len(signs), CELLS, 3)
+    painted = (cells[:, :, 0] == WALL) & (cells[:, :, 1] != GREY)
+    first_painted = painted.argmax(axis=1)  # the signpost's cell (a view shows one at most)
+    colour = np.where(painted.any(axis=1), cells[np.arange(len(cells)), first_painted, 1], 0)
+    category = cells[:, :, 0] * 36 + cells[:, :, 1] * 6 + cells[:, :, 2]
+    cell_set = torch.zeros(len(signs), 11 * 36)
+    cell_set.scatter_(1, torch.as_tensor(category).clamp(max=11 * 36 - 1), 1.0)
+    return {
+        "none": torch.zeros(len(signs), 0),
+        "view": one_hot_entries(signs),
+        "colour": torch.nn.functional.one_hot(torch.as_tensor(colour), 6).float(),
+        "cells": cell_set,
+    }
+
+
+def fit(x: torch.Tensor, y: torch.Tensor, hidden: int, epochs: int, seed: int) -> dict:
+    """Two hidden ReLU layers (one tanh layer if `hidden` <= 64, as the agent's heads); 80% of
+    the rows fitted, 20% held out."""
+    torch.manual_seed(seed)
+    if hidden <= 64:
+        layers = [torch.nn.Linear(x.shape[1], hidden), torch.nn.Tanh()]
+    else:
+        layers = [torch.nn.Linear(x.shape[1], hidden), torch.nn.ReLU()]
+        layers += [torch.nn.Linear(hidden, hidden), torch.nn.ReLU()]
+    net = torch.nn.Sequential(*layers, torch.nn.Linear(hidden, 6))
+    optimizer = torch.optim.Adam(net.parameters(), lr=1e-3, weight_decay=1e-5)
+    split = int(0.8 * len(y))
+    for _ in range(epochs):
+        for batch in torch.randperm(split).split(128):
+            loss = torch.nn.functional.cross_entropy(net(x[batch]), y[batch])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    with torch.no_grad():
+        predicted = net(x).argmax(dim=1) == y
+    return {
+        "train": round(float(predicted[:split].float().mean()), 3),
+        "held_out": round(float(predicted[split:].float().mean()), 3),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", type=int, default=2500)
+    parser.add_argument("--epochs", type=int, default=150)
+    parser.add_argument("--hidden", type=int, default=256)
+    parser.add_argument("--seed", type=int, default=10_000)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    signs, views, actions = choice_steps(args.episodes, args.seed)
+    current, y = one_hot_entries(views), torch.as_tensor(actions)
+    rows = {"choice_steps": len(y), "episodes": args.episodes, "hidden": args.hidden}
+    print(f"{len(y)} choice steps; accuracy against the expert's action (train / held out)")
+    for name, signpost in signpost_inputs(signs).items():
+        rows[name] = fit(torch.cat((signpost, current), 1), y, args.hidden, args.epochs, 0)
+        print(f"{name:>7}: {rows[name]['train']:.3f} / {rows[name]['held_out']:.3f}", flush=True)
+    RESULTS.mkdir(exist_ok=True)
+    path = RESULTS / f"choice_probe_{args.hidden}.json"
+    path.write_text(json.dumps(rows, indent=1))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
