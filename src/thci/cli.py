@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal
 
 import tyro
 
-from thci.config import TrainConfig
+from thci.config import TrainConfig, Trajectories
 from thci.errors import ThciError
 
 
@@ -38,7 +38,7 @@ class TaieArgs:
 
     run_dir: Annotated[Path, tyro.conf.Positional]
     """Run directory written by `thci train` (method t-hci, hci, sai, hai or oracle)."""
-    trajectories: Literal["auto", "expert", "greedy"] = "auto"
+    trajectories: Trajectories = "auto"
     """expert: the environment's expert_action() (pi*, as the paper defines TAIE; the BabyAI
     levels have one); greedy: the run's own policy; auto: expert when the env has one."""
     episodes: int = 100
@@ -100,7 +100,7 @@ class HeatmapArgs:
     """PNG to write (default: RUN_DIR/heatmap.png)."""
     seed: int = 10_000
     """Seed of the episode."""
-    trajectories: Literal["auto", "expert", "greedy"] = "auto"
+    trajectories: Trajectories = "auto"
     """Whose episode: the environment's expert (expert_action(); the BabyAI levels have one),
     the run's greedy agent, or auto: the expert when the environment has one."""
 

@@ -29,6 +29,9 @@ WEIGHING_METHODS = ("t-hci", "hci", "sai", "hai", "oracle")
 # Methods with a causal memory: a gate (or the labels) decides which observations it keeps.
 GATED_METHODS = (*CAUSAL_METHODS, "oracle")
 Algo = Literal["ppo", "a2c", "dmc"]
+Trajectories = Literal["auto", "expert", "greedy"]
+"""Whose episodes TAIE and heatmaps weigh: the environment's expert (``expert_action()``,
+the paper's π*), the trained agent's greedy ones, or auto: the expert where there is one."""
 
 # Fields that may differ between a run and its resumption: where it lives, the resume flag
 # itself, how long to train (extending a finished run is legitimate) and machine settings.

@@ -19,16 +19,16 @@ the observations that decide success. ν is, per method:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import torch
 
 from thci.causal.gate import Gate
+from thci.config import Trajectories
 from thci.envs.factory import make_vector_env
 from thci.errors import ThciError
 from thci.rl.agent import ActorCritic
-from thci.rl.rollout import Rollout, RolloutCollector, has_expert
+from thci.rl.rollout import Rollout, RolloutCollector, plays_expert
 from thci.rl.sequences import cut_into_segments
 
 
@@ -108,9 +108,6 @@ def kept_observations(agent: ActorCritic, rollout: Rollout) -> np.ndarray:
     return (observation_weights(agent, rollout.inputs, rollout.episode_starts) >= 0.5).numpy()
 
 
-Trajectories = Literal["auto", "expert", "greedy"]
-
-
 @dataclass(frozen=True)
 class Taie:
     """A TAIE measurement: `value` (one per attention head for SAI; None when the environment
@@ -149,7 +146,7 @@ def measure_taie(
         env_id, min(16, episodes), "sync" if trajectories == "expert" else vectorization
     )
     try:
-        expert = trajectories == "expert" or (trajectories == "auto" and has_expert(envs))
+        expert = plays_expert(envs, trajectories)
         # Only episodes that start and end inside one rollout count: 512 steps hold at least one
         # of every built-in level (BabyAI-L4 episodes last up to 250 steps), so this terminates.
         collector = RolloutCollector(

@@ -25,13 +25,13 @@ import numpy as np
 import torch
 
 import thci  # noqa: F401  (registers the environments for gym.make)
-from thci.causal.taie import Trajectories, observation_weights
-from thci.config import TrainConfig
+from thci.causal.taie import observation_weights
+from thci.config import TrainConfig, Trajectories
 from thci.errors import ThciError
 from thci.experiments.report import env_label
 from thci.experiments.run_dir import atomic_write_bytes
 from thci.rl.evaluate import load_run
-from thci.rl.rollout import RolloutCollector, has_expert
+from thci.rl.rollout import RolloutCollector, plays_expert
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -76,7 +76,7 @@ def play_trajectory(
                 f"{config.env} reports no info['agent_pos']: a heatmap needs a grid environment "
                 "such as the built-in Maze and BabyAI levels"
             )
-        expert = trajectories == "expert" or (trajectories == "auto" and has_expert(envs))
+        expert = plays_expert(envs, trajectories)
         collector = RolloutCollector(
             envs,
             agent,

@@ -9,8 +9,8 @@ import numpy as np
 import torch
 from gymnasium.vector import VectorEnv
 
-from thci.causal.taie import Trajectories, measure_taie
-from thci.config import WEIGHING_METHODS, TrainConfig
+from thci.causal.taie import measure_taie
+from thci.config import WEIGHING_METHODS, TrainConfig, Trajectories
 from thci.envs.factory import make_vector_env
 from thci.errors import ThciError
 from thci.experiments.run_dir import RunDirectory, atomic_write_json

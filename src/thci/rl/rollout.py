@@ -339,6 +339,12 @@ def has_expert(envs: VectorEnv) -> bool:
     )
 
 
+def plays_expert(envs: VectorEnv, trajectories: str) -> bool:
+    """Whether `trajectories` ("expert", "greedy" or "auto": the expert where there is one)
+    means acting with the environments' expert."""
+    return trajectories == "expert" or (trajectories == "auto" and has_expert(envs))
+
+
 def _reached(infos: dict[str, Any], key: str, ended: np.ndarray) -> np.ndarray:
     """info[key] (N, ...) of the observations just reached (final_info where episodes ended)."""
     if key not in infos:
