@@ -12,6 +12,11 @@ scored on held-out choice steps:
 * ``cells``: the signpost view's set of whole cells, multi-hot over (object, colour, state),
   position-free (what ``--encoder cells`` pools).
 
+Then thci's own oracle agent (``build_agent``, ``--encoder flat`` and ``cells``) is fitted to
+the same choice steps as two-step sequences, the signpost observation (kept by the oracle's
+memory) followed by the current one, with the loss on the second step's action only: whether
+the agent can learn the choice when it is all it is taught.
+
     .venv/bin/python benchmarks/choice_probe.py [--episodes 2500] [--epochs 150] [--hidden 256]
 
 Writes benchmarks/results/choice_probe_{HIDDEN}.json and prints a table.
@@ -30,7 +35,10 @@ import torch
 from tqdm import tqdm
 
 import thci.envs  # noqa: F401  (registers the ids)
+from thci.config import TrainConfig
 from thci.envs.babyai import BabyAIExpert
+from thci.envs.factory import make_vector_env
+from thci.rl.trainer import build_agent
 
 RESULTS = Path(__file__).parent / "results"
 CELLS, VALUES = 49, 12  # a 7x7 view; entries below 12 (objects 0..10, colours 0..5, states 0..2)
@@ -38,8 +46,9 @@ WALL, GREY = 2, 5
 
 
 def choice_steps(episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(last signpost view (n, 147), current view (n, 147), expert action (n,)) at the choice
-    steps of `episodes` expert episodes on BabyAI-L1."""
+    """(last signpost observation (n, D), current observation (n, D), expert action (n,)) at
+    the choice steps of `episodes` expert episodes on BabyAI-L1 (flat observations: the view's
+    147 entries first)."""
     env = gym.make("thci/BabyAI-L1-v0")
     signs, views, actions = [], [], []
     for episode in tqdm(range(episodes), desc="expert episodes", leave=False):
@@ -47,7 +56,7 @@ def choice_steps(episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.n
         level, done, last_sign = env.unwrapped, False, None
         while not done:
             if info["causal"]:
-                last_sign = np.asarray(obs)[: CELLS * 3].copy()
+                last_sign = np.asarray(obs).copy()
             action = level.expert_action()
             twin = copy.deepcopy(level)
             twin.target_ball, twin.decoy_ball = twin.decoy_ball, twin.target_ball
@@ -57,7 +66,7 @@ def choice_steps(episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.n
                 other = action
             if action != other and last_sign is not None:
                 signs.append(last_sign)
-                views.append(np.asarray(obs)[: CELLS * 3].copy())
+                views.append(np.asarray(obs).copy())
                 actions.append(action)
             obs, _, terminated, truncated, info = env.step(action)
             done = terminated or truncated
@@ -66,13 +75,13 @@ def choice_steps(episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.n
 
 def one_hot_entries(views: np.ndarray) -> torch.Tensor:
     """(n, 147) entries -> (n, 147 * 12) one-hot per entry."""
-    index = torch.as_tensor(views).clamp(max=VALUES - 1)
+    index = torch.as_tensor(views[:, : CELLS * 3]).clamp(max=VALUES - 1)
     return torch.nn.functional.one_hot(index, VALUES).flatten(1).float()
 
 
 def signpost_inputs(signs: np.ndarray) -> dict[str, torch.Tensor]:
     """The forms of the signpost that the probe compares (module docstring)."""
-    cells = signs.reshape(len(signs), CELLS, 3)
+    cells = signs[:, : CELLS * 3].reshape(len(signs), CELLS, 3)
     painted = (cells[:, :, 0] == WALL) & (cells[:, :, 1] != GREY)
     first_painted = painted.argmax(axis=1)  # the signpost's cell (a view shows one at most)
     colour = np.where(painted.any(axis=1), cells[np.arange(len(cells)), first_painted, 1], 0)
@@ -113,11 +122,47 @@ def fit(x: torch.Tensor, y: torch.Tensor, hidden: int, epochs: int, seed: int) -
     }
 
 
+def fit_agent(
+    encoder: str, signs: np.ndarray, views: np.ndarray, y: torch.Tensor, epochs: int
+) -> dict:
+    """thci's oracle agent on (signpost, current) two-step sequences; loss on the second step."""
+    env_id = "thci/BabyAI-L1-v0"
+    envs = make_vector_env(env_id, 1, "sync")
+    torch.manual_seed(0)
+    agent = build_agent(TrainConfig(env=env_id, method="oracle", encoder=encoder), envs)
+    envs.close()
+    kept = torch.ones(len(y), 1)  # the oracle's side input: the signpost step is kept
+    x = torch.stack(
+        (
+            torch.cat((torch.as_tensor(signs, dtype=torch.float32), kept), 1),
+            torch.cat((torch.as_tensor(views, dtype=torch.float32), 0 * kept), 1),
+        ),
+        dim=1,
+    )  # (n, 2, D + 1)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-3, eps=1e-5)
+    split = int(0.8 * len(y))
+    for _ in range(epochs):
+        for batch in torch.randperm(split).split(128):
+            logits, _ = agent.evaluate(x[batch], agent.initial_state(len(batch)))
+            loss = torch.nn.functional.cross_entropy(logits[:, 1], y[batch])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    with torch.no_grad():
+        logits, _ = agent.evaluate(x, agent.initial_state(len(y)))
+        predicted = logits[:, 1].argmax(dim=1) == y
+    return {
+        "train": round(float(predicted[:split].float().mean()), 3),
+        "held_out": round(float(predicted[split:].float().mean()), 3),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=2500)
     parser.add_argument("--epochs", type=int, default=150)
     parser.add_argument("--hidden", type=int, default=256)
+    parser.add_argument("--agent-epochs", type=int, default=150)
     parser.add_argument("--seed", type=int, default=10_000)
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -128,6 +173,10 @@ def main() -> None:
     for name, signpost in signpost_inputs(signs).items():
         rows[name] = fit(torch.cat((signpost, current), 1), y, args.hidden, args.epochs, 0)
         print(f"{name:>7}: {rows[name]['train']:.3f} / {rows[name]['held_out']:.3f}", flush=True)
+    for encoder in ("flat", "cells"):
+        name = f"oracle agent, {encoder}"
+        rows[name] = fit_agent(encoder, signs, views, y, args.agent_epochs)
+        print(f"{name}: {rows[name]['train']:.3f} / {rows[name]['held_out']:.3f}", flush=True)
     RESULTS.mkdir(exist_ok=True)
     path = RESULTS / f"choice_probe_{args.hidden}.json"
     path.write_text(json.dumps(rows, indent=1))
