@@ -45,6 +45,17 @@ CELLS, VALUES = 49, 12  # a 7x7 view; entries below 12 (objects 0..10, colours 0
 WALL, GREY = 2, 5
 
 
+def is_choice(level: gym.Env, action: int) -> bool:
+    """Whether the expert's `action` in `level`'s current state depends on which ball is the
+    target: an expert on a copy with target and decoy swapped would act otherwise."""
+    twin = copy.deepcopy(level)
+    twin.target_ball, twin.decoy_ball = twin.decoy_ball, twin.target_ball
+    try:
+        return BabyAIExpert(twin).act() != action
+    except RuntimeError:  # no plan to the swapped target: not a choice step
+        return False
+
+
 def choice_steps(episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(last signpost observation (n, D), current observation (n, D), expert action (n,)) at
     the choice steps of `episodes` expert episodes on BabyAI-L1 (flat observations: the view's
@@ -58,13 +69,7 @@ def choice_steps(episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.n
             if info["causal"]:
                 last_sign = np.asarray(obs).copy()
             action = level.expert_action()
-            twin = copy.deepcopy(level)
-            twin.target_ball, twin.decoy_ball = twin.decoy_ball, twin.target_ball
-            try:
-                other = BabyAIExpert(twin).act()
-            except RuntimeError:  # no plan to the swapped target: not a choice step
-                other = action
-            if action != other and last_sign is not None:
+            if is_choice(level, action) and last_sign is not None:
                 signs.append(last_sign)
                 views.append(np.asarray(obs).copy())
                 actions.append(action)
