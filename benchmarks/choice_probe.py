@@ -26,12 +26,11 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import torch
+from imitation_memory import write_result
 from tqdm import tqdm
 
 import thci.envs  # noqa: F401  (registers the ids)
@@ -40,7 +39,6 @@ from thci.envs.babyai import BabyAIExpert
 from thci.envs.factory import make_vector_env
 from thci.rl.trainer import build_agent
 
-RESULTS = Path(__file__).parent / "results"
 CELLS, VALUES = 49, 12  # a 7x7 view; entries below 12 (objects 0..10, colours 0..5, states 0..2)
 WALL, GREY = 2, 5
 
@@ -182,10 +180,7 @@ def main() -> None:
         name = f"oracle agent, {encoder}"
         rows[name] = fit_agent(encoder, signs, views, y, args.agent_epochs)
         print(f"{name}: {rows[name]['train']:.3f} / {rows[name]['held_out']:.3f}", flush=True)
-    RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"choice_probe_{args.hidden}.json"
-    path.write_text(json.dumps(rows, indent=1))
-    print(f"wrote {path}")
+    write_result(f"choice_probe_{args.hidden}.json", rows)
 
 
 if __name__ == "__main__":

@@ -38,6 +38,14 @@ RESULTS = Path(__file__).parent / "results"
 NUM_ENVS = 16
 
 
+def write_result(name: str, result: object) -> None:
+    """Write `result` as benchmarks/results/NAME (JSON) and say where."""
+    RESULTS.mkdir(exist_ok=True)
+    path = RESULTS / name
+    path.write_text(json.dumps(result, indent=1))
+    print(f"wrote {path}")
+
+
 def expert_episodes(
     env_id: str, agent: ActorCritic, episodes: int, seed: int
 ) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -157,10 +165,7 @@ def main() -> None:
                 f"{row['greedy']['length']} | {row['seconds']}",
                 flush=True,
             )
-    RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"imitation_memory_{args.encoder}_{args.size}.json"
-    path.write_text(json.dumps(rows, indent=1))
-    print(f"wrote {path}")
+    write_result(f"imitation_memory_{args.encoder}_{args.size}.json", rows)
 
 
 if __name__ == "__main__":

@@ -15,13 +15,12 @@ Writes benchmarks/results/weighted_cloning_{METHOD}_{ENCODER}_w{WEIGHT}.json.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import numpy as np
 import torch
 from choice_probe import is_choice
-from imitation_memory import RESULTS, play
+from imitation_memory import play, write_result
 from torch.nn.utils.rnn import pad_sequence
 from tqdm import tqdm
 
@@ -129,10 +128,7 @@ def main() -> None:
     for point in curve:
         print(point)
     print("greedy", result["greedy"], "sampled", result["sampled"])
-    RESULTS.mkdir(exist_ok=True)
-    name = f"weighted_cloning_{args.method}_{args.encoder}_w{args.weight:g}.json"
-    (RESULTS / name).write_text(json.dumps(result, indent=1))
-    print(f"wrote {RESULTS / name}")
+    write_result(f"weighted_cloning_{args.method}_{args.encoder}_w{args.weight:g}.json", result)
 
 
 if __name__ == "__main__":
