@@ -500,6 +500,10 @@ class _TableEstimator:
         # held-out episodes holding each code (default: every code in all 100)
         self.episodes = episodes or {int(c): set(range(100)) for c in codes}
         self.data = type("Data", (), {"observed": codes, "num_codes": len(codes)})()
+        held_out = 1 + max(max(e, default=0) for e in self.episodes.values())
+        self.presence = torch.zeros(held_out, len(codes), dtype=torch.bool)
+        for code, episodes in self.episodes.items():
+            self.presence[list(episodes), code] = True
 
     def support(self, codes):
         return len(set().union(*(self.episodes[int(c)] for c in codes)))
@@ -589,8 +593,8 @@ class _ComplementEstimator(_TableEstimator):
     """Codes 0 and 1 are interchangeable causes (each one's absence reveals the other): masking
     one has no effect, masking both (with O^w) has; codes 2 and 3 have none."""
 
-    def __init__(self) -> None:
-        super().__init__({c: (-0.01, 0.01) for c in range(4)})
+    def __init__(self, episodes: dict[int, set[int]] | None = None) -> None:
+        super().__init__({c: (-0.01, 0.01) for c in range(4)}, episodes)
 
     def ate(self, interventions, eliminated):
         both = [{0, 1} <= {*i.codes.tolist(), *eliminated.tolist()} for i in interventions]
@@ -605,6 +609,39 @@ def test_of_two_interchangeable_causes_the_one_the_gate_keeps_stays(search, pref
     result = search(_ComplementEstimator(), prefer=np.array([prefer]))
     assert result.causal.tolist() == [prefer]
     assert sorted(result.eliminated.tolist()) == sorted({0, 1, 2, 3} - {prefer})
+
+
+# Codes 0 and 1 as the two values of one cell, never in one episode (Maze L3's indicator);
+# code 3 is also never seen with code 0 but tells nothing.
+_EXCLUSIVE_EPISODES = {
+    0: set(range(50)),
+    1: set(range(50, 100)),
+    2: set(range(100)),
+    3: set(range(50, 100)),
+}
+
+
+@pytest.mark.parametrize("search", [hci, lambda e, **k: t_hci(e, z=2, **k)])
+@pytest.mark.parametrize("prefer", [0, 1])
+def test_the_other_value_of_a_cause_is_admitted_back(search, prefer):
+    exclusive = _ComplementEstimator(_EXCLUSIVE_EPISODES)
+    result = search(exclusive, prefer=np.array([prefer]))
+    # elimination keeps one of the pair; its partner, visible, makes it redundant: both stay
+    assert result.causal.tolist() == [0, 1]
+    assert result.confirmed.tolist() == [0, 1]
+    # code 3 is as exclusive of code 0 as code 1 is, but does not stand in for it
+    assert sorted(result.eliminated.tolist()) == [2, 3]
+    substitutes = [r for r in result.interventions if r.kind == "substitute"]
+    assert {r.codes for r in substitutes} == {(prefer,)}  # one pass for 1 - prefer, one for 3
+    without = search(exclusive, prefer=np.array([prefer]), substitutes=False)
+    assert without.causal.tolist() == [prefer]
+
+
+def test_a_substitute_needs_support():
+    # code 1 stands in for code 0 but lies in 5 held-out episodes only: its test would be noise
+    exclusive = _ComplementEstimator({**_EXCLUSIVE_EPISODES, 1: set(range(50, 55))})
+    result = t_hci(exclusive, z=2, prefer=np.array([0]), min_support=10)
+    assert result.causal.tolist() == [0]
 
 
 class _LateComplementEstimator(_TableEstimator):
@@ -781,10 +818,10 @@ def test_reward_target_drops_what_only_decides_where_the_agent_goes():
         with torch.random.fork_rng():
             estimator = EffectEstimator(pool, 4, PredictorConfig(target=target, seed=0))
         kept[target] = set(t_hci(estimator, z=4).causal.tolist())
-    # one of each complementary pair suffices (the absence of 1 tells that o_1 was 2)
-    assert len(kept["dynamics"] & {1, 2}) >= 1 and len(kept["dynamics"] & {3, 4}) >= 1
-    assert len(kept["reward"] & {1, 2}) >= 1 and not kept["reward"] & {3, 4}
-    assert not (kept["dynamics"] | kept["reward"]) & {7, 8, 9}
+    # one of each complementary pair would suffice (the absence of 1 tells that o_1 was 2);
+    # the other, never in an episode with it, is admitted back as its substitute
+    assert kept["dynamics"] == {1, 2, 3, 4}
+    assert kept["reward"] == {1, 2}
 
 
 def test_ci_rounds_stop_once_two_in_a_row_agree_also_with_undecided_observations():

@@ -170,6 +170,12 @@ class TrainConfig:
     policy acts on a cause, the path it takes tells the outcome as well, and a round on such a
     pool finds the cause redundant: on Maze L1 the third round (pool of a solved policy) kept
     nothing and success fell from 0.9+ to 0.52."""
+    ci_substitutes: bool = True
+    """After the search, keep the eliminated observations that stand in for a cause: those
+    that never share an episode with it and, visible, make it redundant (the other values of its
+    variable, such as Maze's two indicator codes; thci.causal.search._Search.admit_substitutes).
+    The eliminated set alone is sufficient, but a policy reads a value from its presence in
+    memory faster than from the absence of another."""
     ci_min_episodes: int = 200
     """Episodes the replay pool must hold before the first CI round (cross-fitting holds each
     out once: 200 is 4 folds of 50). Maze L1-L2 are solved in ~1000 episodes."""
@@ -368,6 +374,8 @@ class TrainConfig:
         if "ci_initial_memory" not in values:
             values["ci_initial_memory"] = "full"
             values.setdefault("ci_first_lag", values.get("ci_lag", cls.ci_lag))
+        # Configs written before substitutes were admitted (2026-12-06) ran without them.
+        values.setdefault("ci_substitutes", False)
         if values.get("run_dir") is not None:
             values["run_dir"] = Path(values["run_dir"])
         if values.get("cell_layout") is not None:  # JSON has no tuples

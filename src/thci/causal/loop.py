@@ -84,7 +84,9 @@ class CIJob:
         warm_start: the previous round's p_ζ, continued on this pool (None: fit from scratch).
         keep: codes confirmed causal in earlier rounds (`ci_cumulative`): kept untested.
         prefer: codes the current gate keeps: of two interchangeable causes, these stay.
-        min_support: T-HCI splits a part only while it occurs in this many held-out episodes.
+        min_support: T-HCI splits a part only while it occurs in this many held-out episodes
+            (and admits a substitute of a cause seen in as many).
+        substitutes: admit the observations that stand in for a cause (search.t_hci).
     """
 
     pool: PoolArrays
@@ -101,6 +103,7 @@ class CIJob:
     keep: np.ndarray | None = None
     prefer: np.ndarray | None = None
     min_support: int = DEFAULT_MIN_SUPPORT
+    substitutes: bool = True
 
 
 @dataclass(frozen=True)
@@ -162,7 +165,14 @@ def run_ci_job(job: CIJob, parts: list[FittedPart] | None = None) -> CIOutcome:
         keep = None if job.keep is None else estimator.data.dense_ids(job.keep)
         prefer = None if job.prefer is None else estimator.data.dense_ids(job.prefer)
         if job.method == "hci":
-            result = hci(estimator, xi=job.xi, keep=keep, prefer=prefer)
+            result = hci(
+                estimator,
+                xi=job.xi,
+                keep=keep,
+                prefer=prefer,
+                substitutes=job.substitutes,
+                min_support=job.min_support,
+            )
         else:
             result = t_hci(
                 estimator,
@@ -171,6 +181,7 @@ def run_ci_job(job: CIJob, parts: list[FittedPart] | None = None) -> CIOutcome:
                 keep=keep,
                 min_support=job.min_support,
                 prefer=prefer,
+                substitutes=job.substitutes,
             )
         gate = job.gate.build()
         gate.load_state_dict(job.gate_state)
@@ -421,6 +432,7 @@ class CausalInferenceLoop:
             else None,
             prefer=None if self.last_result is None else self.last_result.causal,
             min_support=cfg.ci_min_support,
+            substitutes=cfg.ci_substitutes,
         )
 
     def _start(self, global_step: int) -> None:

@@ -978,7 +978,7 @@ class EffectEstimator:
         self.data = CodeData(pool, config, num_actions)
         torch.manual_seed(config.seed)
         self._dropout_generator = torch.Generator().manual_seed(config.seed + 2)
-        self._test_presence: torch.Tensor | None = None  # (E_test, |Ô|), built by support()
+        self._test_presence: torch.Tensor | None = None  # built by `presence`
         self.base = BatchedPredictor(
             config.ensemble,
             self.data.num_codes,
@@ -1007,9 +1007,10 @@ class EffectEstimator:
         fitted_members = torch.arange(config.ensemble) if members is None else torch.tensor(members)
         self._base_optimizer = self._fit(self.base, fitted_members, masks, steps)
 
-    def support(self, codes: np.ndarray) -> int:
-        """Held-out episodes whose history (before their last transition) holds any of
-        `codes` (dense ids): the episodes an ATE of that set is estimated from."""
+    @property
+    def presence(self) -> torch.Tensor:
+        """(E_test, |Ô|) bool: which codes (dense ids) lie in the history (before the last
+        transition) of each held-out episode, the episodes ATEs are estimated from."""
         if self._test_presence is None:
             ids, valid = self.data.ids[self.data.test], self.data.valid[self.data.test]
             # o_j is in the history of transition t > j: of a real transition when j + 1 is one
@@ -1019,8 +1020,13 @@ class EffectEstimator:
             presence = torch.zeros(len(ids), self.data.num_codes, dtype=torch.bool)
             presence[rows[in_history], ids[in_history]] = True
             self._test_presence = presence
+        return self._test_presence
+
+    def support(self, codes: np.ndarray) -> int:
+        """Held-out episodes whose history holds any of `codes` (dense ids): the episodes an
+        ATE of that set is estimated from."""
         columns = torch.as_tensor(codes, dtype=torch.long)
-        return int(self._test_presence[:, columns].any(dim=1).sum())
+        return int(self.presence[:, columns].any(dim=1).sum())
 
     def state(self) -> PredictorState:
         """The fitted base predictor, to warm-start the next round."""

@@ -45,6 +45,13 @@ A test has three outcomes, by where the ATE's confidence interval lies against t
 
 Only confirmed observations are final, so what an early, noisy pool keeps by doubt does not
 stay in the causal memory for the rest of the run.
+
+Substitutes. Sequential elimination returns a *sufficient* set: of two values of one hidden
+variable (Maze's indicator cell shows code 0 or code 1, never both in an episode) it keeps one,
+since the other's absence tells it. Both searches then admit back each eliminated observation
+that stands in for a confirmed cause it never shares an episode with
+(:meth:`_Search.admit_substitutes`), so the memory holds every value of the variable instead of
+asking the policy to read one from an absence (`substitutes=False` returns the sufficient set).
 """
 
 from __future__ import annotations
@@ -86,7 +93,7 @@ class InterventionRecord:
     ate: float
     seconds: float
     step: int | None = None
-    kind: str = "test"  # "test" or "union-check"
+    kind: str = "test"  # "test", "union-check" or "substitute"
     ate_lower: float = 0.0
     ate_upper: float = 0.0
 
@@ -247,6 +254,45 @@ class _Search:
         else:
             self._eliminate(ordered[: self._removable_prefix(ordered, low=0)])
 
+    def admit_substitutes(self, min_support: int) -> None:
+        """Keep the eliminated observations that stand in for a cause: the other values of
+        its variable.
+
+        Of two observations that never occur in one episode and each tell the other's
+        absence (Maze L3's indicator cell shows code 0 or code 1), sequential elimination keeps
+        one: the second has no effect beside the first. The kept set is sufficient, but the
+        policy must then read the other value from an *absence* in its memory, and that is
+        slow to learn: T-HCI on Maze L3 solved in 144k steps with the gate [0, 1, 2] (the
+        labels) and in 560k-1.97M with [0, 2] or [1, 2] (seeds 1-5, docs/experiments.md).
+        An eliminated c (seen in at least `min_support` held-out episodes) is admitted when a
+        confirmed cause k that never shares a held-out episode with it loses its effect once c
+        is visible: ATE(k | O^w without c) has no effect while ATE(k | O^w) has a confirmed
+        one (k is confirmed: its effect was significant given a smaller O^w, and the ATE is
+        monotone in the masked set), i.e. eliminating k instead of c would have been as valid.
+        Each candidate is
+        tested against the search's own O^w (not one with earlier admissions removed), so an
+        unrelated code exclusive of k is not admitted because some other substitute already
+        tells k. One batched pass per candidate."""
+        causes = np.setdiff1d(self.confirmed, self.eliminated)
+        if len(causes) == 0 or len(self.eliminated) == 0:
+            return
+        presence = self.estimator.presence  # (E_test, |Ô|)
+        eliminated = self.eliminated
+        admitted = []
+        for c in np.sort(eliminated).tolist():
+            if self.estimator.support(np.array([c])) < min_support:
+                continue
+            exclusive = ~(presence[:, causes] & presence[:, [c]]).any(dim=0).numpy()
+            partners = causes[exclusive]
+            if len(partners) == 0:
+                continue
+            self.eliminated = eliminated[eliminated != c]
+            effect, _, _ = self._run([np.array([k]) for k in partners], "substitute")
+            if not effect.all():
+                admitted.append(c)
+        self.eliminated = np.setdiff1d(eliminated, admitted)
+        self.confirmed = np.union1d(self.confirmed, admitted).astype(np.int64)
+
     def _union_has_effect(self, parts: list[np.ndarray]) -> bool:
         """Whether masking all `parts` together (with O^w) may have an effect."""
         effect, _, _ = self._run([np.concatenate(parts)], "union-check")
@@ -278,6 +324,7 @@ def t_hci(
     keep: np.ndarray | None = None,
     min_support: int = DEFAULT_MIN_SUPPORT,
     prefer: np.ndarray | None = None,
+    substitutes: bool = True,
 ) -> CIResult:
     """Tree-based History Counterfactual Inference (Prop. 3) over Ô.
 
@@ -290,6 +337,8 @@ def t_hci(
             this many held-out episodes; rarer parts are kept whole (see DEFAULT_MIN_SUPPORT).
         prefer: dense ids the current gate keeps; of interchangeable causes (each of which the
             other's absence reveals), these are the ones kept.
+        substitutes: then admit the eliminated observations that stand in for a cause
+            (:meth:`_Search.admit_substitutes`): the other values of its variable.
     """
     if z < 2:
         raise ValueError(f"Z must be at least 2, got {z}")
@@ -308,6 +357,8 @@ def t_hci(
         # A kept part of one observation is causal: nothing left to split. A part with an
         # effect too rare to test its pieces is kept whole, as an uncertain test would keep it.
         branches = [p for p in kept if len(p) > 1 and estimator.support(p) >= min_support]
+    if substitutes:
+        search.admit_substitutes(min_support)
     return search.result("t-hci", started)
 
 
@@ -317,15 +368,20 @@ def hci(
     batch_size: int = 16,
     keep: np.ndarray | None = None,
     prefer: np.ndarray | None = None,
+    substitutes: bool = True,
+    min_support: int = DEFAULT_MIN_SUPPORT,
 ) -> CIResult:
     """History Counterfactual Inference on single observations (Thm. 2): |Ô| interventions,
-    run `batch_size` at a time; `keep` and `prefer` as in :func:`t_hci`."""
+    run `batch_size` at a time; `keep`, `prefer`, `substitutes` and `min_support` (of a
+    substitute) as in :func:`t_hci`."""
     started = time.perf_counter()
     search = _Search(estimator, xi, keep, prefer)
     codes = _candidates(estimator, keep)
     for begin in range(0, len(codes), batch_size):
         search.resolve([np.array([c]) for c in codes[begin : begin + batch_size]])
     search.settle_undecided()
+    if substitutes:
+        search.admit_substitutes(min_support)
     return search.result("hci", started)
 
 
