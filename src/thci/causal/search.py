@@ -269,23 +269,23 @@ class _Search:
         is visible: ATE(k | O^w without c) has no effect while ATE(k | O^w) has a confirmed
         one (k is confirmed: its effect was significant given a smaller O^w, and the ATE is
         monotone in the masked set), i.e. eliminating k instead of c would have been as valid.
-        Each candidate is
-        tested against the search's own O^w (not one with earlier admissions removed), so an
-        unrelated code exclusive of k is not admitted because some other substitute already
-        tells k. One batched pass per candidate."""
+        Each candidate is tested against the search's own O^w (not one with earlier admissions
+        removed), so an unrelated code exclusive of k is not admitted because some other
+        substitute already tells k. Candidates are found with one product of the held-out
+        episodes' presence matrix; each costs one batched pass (its partners side by side)."""
         causes = np.setdiff1d(self.confirmed, self.eliminated)
         if len(causes) == 0 or len(self.eliminated) == 0:
             return
-        presence = self.estimator.presence  # (E_test, |Ô|)
+        presence = self.estimator.presence.float()  # (E_test, |Ô|)
         eliminated = self.eliminated
+        supported = presence[:, eliminated].sum(dim=0) >= min_support
+        together = presence[:, causes].T @ presence[:, eliminated]  # (causes, eliminated)
         admitted = []
-        for c in np.sort(eliminated).tolist():
-            if self.estimator.support(np.array([c])) < min_support:
-                continue
-            exclusive = ~(presence[:, causes] & presence[:, [c]]).any(dim=0).numpy()
-            partners = causes[exclusive]
+        for j in supported.nonzero().flatten().tolist():
+            partners = causes[(together[:, j] == 0).numpy()]
             if len(partners) == 0:
                 continue
+            c = eliminated[j]
             self.eliminated = eliminated[eliminated != c]
             effect, _, _ = self._run([np.array([k]) for k in partners], "substitute")
             if not effect.all():
