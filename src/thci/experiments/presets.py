@@ -124,7 +124,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     # apart solved it at 33k, and every other L1-L2 run of both methods too.
     # L3-L4 get 2M steps: PPO can sit at success ~0.75 (three of the four goals) for hundreds of
     # thousands of steps whatever the memory; at 1M, T-HCI L3 seed 4 (sufficient gate from its
-    # first round) and LSTM L3 seed 2 had not solved, at 2M both had (1.97M and 1.29M).
+    # first round) and LSTM L3 seed 2 had not solved, at 2M both had (1.97M and 1.29M; with
+    # the search's substitutes T-HCI's seed 4 solves at 771k).
     "maze-lstm-vs-thci": {
         "envs": list(PAPER_MAZE),
         "methods": ["lstm", "t-hci"],
