@@ -644,6 +644,15 @@ def test_a_substitute_needs_support():
     assert result.causal.tolist() == [0]
 
 
+def test_a_rare_pair_never_together_by_chance_is_not_tested_as_substitutes():
+    # codes 0 and 1 in 12 held-out episodes each of 100, never together: independence would put
+    # them together in 1.4 episodes, so their exclusivity is no evidence of one variable
+    episodes = {0: set(range(12)), 1: set(range(12, 24)), 2: set(range(100)), 3: set(range(100))}
+    result = t_hci(_ComplementEstimator(episodes), z=2, prefer=np.array([0]), min_support=10)
+    assert result.causal.tolist() == [0]
+    assert not [r for r in result.interventions if r.kind == "substitute"]
+
+
 class _LateComplementEstimator(_TableEstimator):
     """64 codes without effect, except that masking both 40 and 50 (with O^w) has one."""
 

@@ -83,6 +83,12 @@ or two episodes) the unbounded tree ran thousands of interventions and kept near
 maze's codes occur in most episodes, so there this never applies."""
 
 
+EXCLUSIVE_EXPECTED = 3.0
+"""A cause and an eliminated observation count as exclusive (values of one variable, for
+:meth:`_Search.admit_substitutes`) when no held-out episode holds both although independence
+would put both in at least this many (P(0 | Poisson(3)) = 0.05)."""
+
+
 @dataclass(frozen=True)
 class InterventionRecord:
     """One intervention: the observation codes intervened on (with O^w also masked), the
@@ -265,7 +271,8 @@ class _Search:
         slow to learn: T-HCI on Maze L3 solved in 144k steps with the gate [0, 1, 2] (the
         labels) and in 560k-1.97M with [0, 2] or [1, 2] (seeds 1-5, docs/experiments.md).
         An eliminated c (seen in at least `min_support` held-out episodes) is admitted when a
-        confirmed cause k that never shares a held-out episode with it loses its effect once c
+        confirmed cause k that never shares a held-out episode with it (significantly, see
+        EXCLUSIVE_EXPECTED) loses its effect once c
         is visible: ATE(k | O^w without c) has no effect while ATE(k | O^w) has a confirmed
         one (k is confirmed: its effect was significant given a smaller O^w, and the ATE is
         monotone in the masked set), i.e. eliminating k instead of c would have been as valid.
@@ -278,11 +285,17 @@ class _Search:
             return
         presence = self.estimator.presence.float()  # (E_test, |Ô|)
         eliminated = self.eliminated
-        supported = presence[:, eliminated].sum(dim=0) >= min_support
+        counts = presence.sum(dim=0)
+        supported = counts[eliminated] >= min_support
         together = presence[:, causes].T @ presence[:, eliminated]  # (causes, eliminated)
+        # Never together where independence would put them together in EXCLUSIVE_EXPECTED or
+        # more episodes (a one-sided 5% test): a rare cause is "exclusive" of most codes by
+        # chance, and testing each of them cost 1,720 passes on App. J's |O| = 1000 data.
+        expected = counts[causes].unsqueeze(1) * counts[eliminated].unsqueeze(0) / len(presence)
+        exclusive = (together == 0) & (expected >= EXCLUSIVE_EXPECTED)
         admitted = []
         for j in supported.nonzero().flatten().tolist():
-            partners = causes[(together[:, j] == 0).numpy()]
+            partners = causes[exclusive[:, j].numpy()]
             if len(partners) == 0:
                 continue
             c = eliminated[j]
