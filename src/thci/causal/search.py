@@ -283,22 +283,24 @@ class _Search:
         causes = np.setdiff1d(self.confirmed, self.eliminated)
         if len(causes) == 0 or len(self.eliminated) == 0:
             return
-        presence = self.estimator.presence.float()  # (E_test, |Ô|)
+        presence = self.estimator.presence  # (E_test, |Ô|) bool
         eliminated = self.eliminated
         counts = presence.sum(dim=0)
-        supported = counts[eliminated] >= min_support
-        together = presence[:, causes].T @ presence[:, eliminated]  # (causes, eliminated)
+        candidates = eliminated[(counts[eliminated] >= min_support).numpy()]
+        if len(candidates) == 0:
+            return
+        # (causes, candidates): held-out episodes holding both
+        together = presence[:, causes].T.float() @ presence[:, candidates].float()
         # Never together where independence would put them together in EXCLUSIVE_EXPECTED or
         # more episodes (a one-sided 5% test): a rare cause is "exclusive" of most codes by
         # chance, and testing each of them cost 1,720 passes on App. J's |O| = 1000 data.
-        expected = counts[causes].unsqueeze(1) * counts[eliminated].unsqueeze(0) / len(presence)
+        expected = counts[causes].unsqueeze(1) * counts[candidates].unsqueeze(0) / len(presence)
         exclusive = (together == 0) & (expected >= EXCLUSIVE_EXPECTED)
         admitted = []
-        for j in supported.nonzero().flatten().tolist():
+        for j, c in enumerate(candidates.tolist()):
             partners = causes[exclusive[:, j].numpy()]
             if len(partners) == 0:
                 continue
-            c = eliminated[j]
             self.eliminated = eliminated[eliminated != c]
             effect, _, _ = self._run([np.array([k]) for k in partners], "substitute")
             if not effect.all():
