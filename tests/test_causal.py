@@ -498,15 +498,15 @@ class _TableEstimator:
         codes = np.array(sorted(bounds))
         self.bounds = bounds
         # held-out episodes holding each code (default: every code in all 100)
-        self.episodes = episodes or {int(c): set(range(100)) for c in codes}
+        episodes = episodes or {int(c): set(range(100)) for c in codes}
         self.data = type("Data", (), {"observed": codes, "num_codes": len(codes)})()
-        held_out = 1 + max(max(e, default=0) for e in self.episodes.values())
+        held_out = 1 + max(max(e, default=0) for e in episodes.values())
         self.presence = torch.zeros(held_out, len(codes), dtype=torch.bool)
-        for code, episodes in self.episodes.items():
-            self.presence[list(episodes), code] = True
+        for code, holding in episodes.items():
+            self.presence[list(holding), code] = True
 
     def support(self, codes):
-        return len(set().union(*(self.episodes[int(c)] for c in codes)))
+        return int(self.presence[:, list(codes)].any(dim=1).sum())
 
     def ate(self, interventions, eliminated):
         lower = [sum(self.bounds[int(c)][0] for c in i.codes) for i in interventions]

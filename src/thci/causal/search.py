@@ -140,22 +140,27 @@ class _Search:
         self.records: list[InterventionRecord] = []
 
     def _run(
-        self, sets: list[np.ndarray], kind: str = "test"
+        self, sets: list[np.ndarray], kind: str = "test", given: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Whether masking each set (with O^w) may have, and has for sure, an effect, and its
         estimated ATE; see :meth:`run_interventions`."""
-        return self.run_interventions([Intervention(s) for s in sets], kind)
+        return self.run_interventions([Intervention(s) for s in sets], kind, given)
 
     def run_interventions(
-        self, interventions: list[Intervention], kind: str = "test"
+        self,
+        interventions: list[Intervention],
+        kind: str = "test",
+        given: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One batched ATE estimate of `interventions` given O^w, every one logged. Returns
+        """One batched ATE estimate of `interventions` given O^w (or the masked set `given`,
+        dense ids, instead), every one logged. Returns
         three (K,) arrays: which may have an effect (bool: all but those whose confidence
         interval lies within [−ξ, ξ] or, the true ATE being ≥ 0, reaches no higher than ξ
         without being confidently negative), which have a confirmed one (bool: estimate above
         ξ, lower bound above 0), and the estimates; see the module doc."""
         started = time.perf_counter()
-        estimate = self.estimator.ate(interventions, self.eliminated)
+        given = self.eliminated if given is None else given
+        estimate = self.estimator.ate(interventions, given)
         seconds = time.perf_counter() - started
         observed = self.estimator.data.observed
         for k, intervention in enumerate(interventions):
@@ -301,8 +306,8 @@ class _Search:
             partners = causes[exclusive[:, j].numpy()]
             if len(partners) == 0:
                 continue
-            self.eliminated = eliminated[eliminated != c]
-            effect, _, _ = self._run([np.array([k]) for k in partners], "substitute")
+            given = eliminated[eliminated != c]  # c visible
+            effect, _, _ = self._run([np.array([k]) for k in partners], "substitute", given)
             if not effect.all():
                 admitted.append(c)
         self.eliminated = np.setdiff1d(eliminated, admitted)
