@@ -1,5 +1,6 @@
 """The causal engine against cases with a known answer."""
 
+import dataclasses
 import math
 import threading
 from types import SimpleNamespace
@@ -66,6 +67,25 @@ def test_t_hci_recovers_planted_causes_exactly_within_the_bound(planted):
     assert result.num_interventions <= bound
 
 
+def test_a_whole_batch_fit_recovers_planted_causes_and_is_taken_only_on_small_sets():
+    # The reward target predicts one transition per episode here (1500 <= 2048): a fit from
+    # scratch takes them all at every step, for whole_batch_steps steps.
+    data = generate_planted_episodes(32, num_causal=2, num_episodes=1500, seed=3)
+    pool = pad_episodes(data.episodes)
+    config = PredictorConfig(seed=0, target="reward", base_steps=400, whole_batch_steps=200)
+    with torch.random.fork_rng():
+        estimator = EffectEstimator(pool, 4, config)
+    assert int(estimator._optimizer().steps) == 200
+    result = t_hci(estimator, z=4)
+    assert sorted(result.causal.tolist()) == sorted(data.causal_codes.tolist())
+    # a set larger than batch_transitions is fitted on minibatches for base_steps
+    small_batches = dataclasses.replace(config, base_steps=7, batch_transitions=1000)
+    assert int(EffectEstimator(pool, 4, small_batches)._optimizer().steps) == 7
+    # a warm-started fit continues on minibatches for warm_steps
+    warm = dataclasses.replace(config, warm_steps=5)
+    assert int(EffectEstimator(pool, 4, warm, estimator.state())._optimizer().steps) == 5
+
+
 def test_hci_recovers_planted_causes_with_one_intervention_per_observation(planted):
     data, estimator = planted
     result = hci(estimator)
@@ -130,17 +150,25 @@ def test_both_history_summaries_credit_the_same_positions(embeddings):
     assert gradients[0].abs().sum() > 0
 
 
-@pytest.mark.parametrize("target", ["reward", "dynamics"])
-def test_the_fits_transition_table_gives_the_loss_and_gradients_of_the_episode_tensors(target):
+@pytest.mark.parametrize(
+    ("target", "num_codes", "length", "min_code_episodes"),
+    [("reward", 40, 4, 38), ("dynamics", 40, 4, 38), ("reward", 12, 12, 200)],
+)
+def test_the_fits_transition_table_gives_the_loss_and_gradients_of_the_episode_tensors(
+    target, num_codes, length, min_code_episodes
+):
     """The fit gathers its batches from a table of predicted transitions laid out once
-    (`transition_loss`); it must give bit for bit the loss and gradients that cutting them out
-    of the episode tensors gives (`loss`), with rare codes hidden, repeated episodes in a
-    batch, per-episode masks of whole codes, and tied embeddings. Short episodes, so that the
-    dynamics target too predicts few transitions per episode (the regime the table is for)."""
+    (`transition_loss`), each history as its distinct codes; it must give bit for bit the loss
+    and gradients that cutting them out of the episode tensors gives (`loss`), with rare codes
+    hidden, repeated episodes in a batch, per-episode masks of whole codes, and tied embeddings.
+    Short episodes, so that the dynamics target too predicts few transitions per episode (the
+    regime the table is for); long ones with few codes, so that histories repeat codes."""
     planted = generate_planted_episodes(
-        40, num_causal=1, num_episodes=300, episode_length=4, seed=4
+        num_codes, num_causal=1, num_episodes=300, episode_length=length, seed=4
     )
-    config = PredictorConfig(target=target, base_steps=0, min_code_episodes=38, seed=1)
+    config = PredictorConfig(
+        target=target, base_steps=0, min_code_episodes=min_code_episodes, seed=1
+    )
     estimator = EffectEstimator(pad_episodes(planted.episodes), 4, config)
     data, model = estimator.data, estimator.base
     assert 0 < int((~data.frequent).sum()) < data.num_codes  # some codes are rare
@@ -150,6 +178,8 @@ def test_the_fits_transition_table_gives_the_loss_and_gradients_of_the_episode_t
             parameter.normal_()
         model.embed[:, 3] = model.embed[:, 5]  # a tie
     table = data.predicted_transitions()
+    if length > 4:  # the histories hold repeated codes, which the table reads once
+        assert (table.integers.shape[1] - 5) // 2 < data.ids.shape[1] - 1
     episodes = data.fit_episodes[torch.randint(len(data.fit_episodes), (64,))]
     assert 0 < int(table.count[episodes].sum()) <= FEW_PER_EPISODE * len(episodes)
     _, masked_codes = estimator._random_code_dropout(episodes)
@@ -950,9 +980,15 @@ def test_a_round_queued_on_a_starting_worker_is_computed_here_if_it_has_not_begu
             assert np.array_equal(outcome.result.causal, run_ci_job(job).result.causal)
 
 
-def test_a_round_fitted_in_two_parts_finds_exactly_what_one_fit_finds():
+@pytest.mark.parametrize("whole_batch_steps", [0, 30])
+def test_a_round_fitted_in_two_parts_finds_exactly_what_one_fit_finds(whole_batch_steps):
     # the RL loop fits half the ensemble while the worker fits the other half
     job = planted_ci_job(12, num_episodes=300, episode_length=12, base_steps=30, seed=4)
+    if whole_batch_steps:  # the reward target predicts ~1 transition per episode: a small set
+        predictor = dataclasses.replace(
+            job.predictor, target="reward", whole_batch_steps=whole_batch_steps
+        )
+        job = dataclasses.replace(job, predictor=predictor)
     whole = run_ci_job(job)
     parts = run_ci_job(job, [fit_ci_part(job, [0, 1]), fit_ci_part(job, [2, 3])])
     assert [r.ate for r in parts.result.interventions] == [

@@ -377,3 +377,11 @@ def test_a_config_written_before_the_empty_start_resumes_with_a_full_memory():
     restored = TrainConfig.from_dict(old)
     # as such runs ran: everything in memory until the first gate, ci_lag steps after its round
     assert restored.ci_initial_memory == "full" and restored.ci_first_lag == 4096
+
+
+def test_a_config_written_before_substitutes_and_whole_batch_fits_resumes_without_them():
+    current = TrainConfig(method="t-hci").to_dict()
+    assert current["ci_substitutes"] and current["ci_whole_batch_steps"] > 0
+    old = {k: v for k, v in current.items() if k not in ("ci_substitutes", "ci_whole_batch_steps")}
+    restored = TrainConfig.from_dict(old)
+    assert not restored.ci_substitutes and restored.ci_whole_batch_steps == 0

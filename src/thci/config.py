@@ -207,6 +207,13 @@ class TrainConfig:
     extra codes on five of eleven first-round Maze L1-L3 pools and 1000 steps were needed; since,
     every batch holds ~6x more of the transitions that decide the reward, and on eleven new
     pools 400 steps kept what 1000 did on all eleven (250 steps: extra codes on three)."""
+    ci_whole_batch_steps: int = 250
+    """A first-round fit whose pool holds at most 2048 transitions to predict (Maze pools)
+    takes them all at every step, for this many steps from Adam rate 1e-2 decayed linearly,
+    instead of ci_base_steps minibatch steps (0: minibatches). It is the round the RL loop
+    may wait for: with 250, Maze L1-L2 runs solve at the same steps as with minibatches and
+    wait 3-10% of the run instead of 9-20% (PredictorConfig.whole_batch_steps,
+    docs/experiments.md)."""
     ci_warm_steps: int = 1000
     """Adam steps of the effect predictor in later rounds, which continue the previous round's
     predictor on the grown pool (0: every round fits from scratch for ci_base_steps). On a
@@ -294,7 +301,7 @@ class TrainConfig:
             if getattr(self, name) < 0:
                 flag = "--" + name.replace("_", "-")
                 raise ThciError(f"{flag} must be >= 0, got {getattr(self, name)}")
-        for name in ("ci_finetune_steps", "ci_warm_steps"):
+        for name in ("ci_finetune_steps", "ci_warm_steps", "ci_whole_batch_steps"):
             if getattr(self, name) < 0:
                 raise ThciError(f"--{_flag(name)} must be >= 0, got {getattr(self, name)}")
         floats = {
@@ -376,6 +383,8 @@ class TrainConfig:
             values.setdefault("ci_first_lag", values.get("ci_lag", cls.ci_lag))
         # Configs written before substitutes were admitted (2026-12-06) ran without them.
         values.setdefault("ci_substitutes", False)
+        # ... and before the whole-batch first fit (2026-12-06, later), with minibatches.
+        values.setdefault("ci_whole_batch_steps", 0)
         if values.get("run_dir") is not None:
             values["run_dir"] = Path(values["run_dir"])
         if values.get("cell_layout") is not None:  # JSON has no tuples

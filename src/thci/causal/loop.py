@@ -421,6 +421,7 @@ class CausalInferenceLoop:
                 target=cfg.ci_target,
                 base_steps=cfg.ci_base_steps,
                 warm_steps=cfg.ci_warm_steps,
+                whole_batch_steps=cfg.ci_whole_batch_steps,
                 finetune_steps=cfg.ci_finetune_steps,
                 ensemble=cfg.ci_ensemble,
                 seed=cfg.seed + len(self.rounds),

@@ -166,6 +166,17 @@ class PredictorConfig:
     Maze-L3 pools in 4.6-4.9 s where 4096 took 8.1 s (400 steps, one thread), and kept the
     same sets."""
     learning_rate: float = 3e-3
+    whole_batch_steps: int = 0
+    """A fit from scratch whose training set holds at most `batch_transitions` predicted
+    transitions takes the whole set at every step, for this many steps, from Adam rate
+    `whole_batch_learning_rate` decayed linearly towards 0 (0: minibatches of
+    `batch_episodes` for `base_steps` at `learning_rate`, as every other fit). On such small
+    sets a step costs about what a minibatch step does (its cost is per-operation overhead),
+    and without sampling noise fewer steps fit as well: the first CI round of a run, which the
+    RL loop may wait for, is one. On the 10 first-round Maze L1-L2 pools of seeds 1-5, 250
+    steps from 1e-2 kept exactly what 400 minibatch steps at 3e-3 keep, in 0.31-0.48 s
+    against 0.47-0.56 s; 200 steps kept corridor codes on one (docs/experiments.md)."""
+    whole_batch_learning_rate: float = 1e-2
     code_dropout: float = 1.0
     """Largest rate at which the base fit removes codes from an episode's history (see
     :meth:`EffectEstimator._random_code_dropout`)."""
@@ -211,18 +222,20 @@ class PredictorConfig:
 class PredictedTransitions:
     """A pool's predicted transitions laid out once for the fit's minibatches
     (:meth:`BatchedPredictor.transition_loss`): a fitting step gathers its batch's transitions
-    with one indexing instead of cutting them out of (B, L) episode tensors, and their history
-    positions come ready, latest first (:meth:`BatchedPredictor.bag_max`). Built where
-    transitions per episode are few (the reward target): it holds L positions per transition.
+    with one indexing instead of cutting them out of (B, L) episode tensors, and their
+    histories come ready as their distinct codes, latest occurrence first
+    (:meth:`BatchedPredictor.bag_max`, :func:`_latest_distinct`). Built where transitions per
+    episode are few (the reward target): it holds W ≤ L codes per transition.
 
     Attributes:
         slots: (E, P) the transitions of each episode (rows of the tensors below) in step
             order, -1 after its last.
         count: (E,) predicted transitions of each episode. length: (E,) real ones.
-        integers: (N, 2L + 5) per transition: the dense ids of o_L … o_1 (latest first: where
-            masks are looked up), their embedding rows (-1 at o_t and after, and for rare
-            codes), then step, current, following and action as in :class:`Transitions`, and
-            the class of o_{t+1} (see :meth:`gather`).
+        integers: (N, 2W + 5) per transition: the dense ids of the distinct codes among
+            o_1 … o_{t-1}, latest occurrence first (where masks are looked up), their
+            embedding rows (-1 after the last, and rare codes are left out), then step,
+            current, following and action as in :class:`Transitions`, and the class of
+            o_{t+1} (see :meth:`gather`).
         reward: (N,) r_t (divided by max |r|).
     """
 
@@ -233,7 +246,7 @@ class PredictedTransitions:
     reward: torch.Tensor
 
     def gather(self, chosen: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """history codes (n, L), history rows (n, L), step, current, following, action and
+        """history codes (n, W), history rows (n, W), step, current, following, action and
         next class (n,) of transitions `chosen` (n,)."""
         positions = (self.integers.shape[1] - 5) // 2
         codes, rows, rest = self.integers[chosen].split([positions, positions, 5], dim=1)
@@ -332,9 +345,11 @@ class CodeData:
         first = (torch.cumsum(counts, 0) - counts)[episodes]
         slots[episodes, torch.arange(len(episodes)) - first] = torch.arange(len(episodes))
         positions = self.ids.shape[1] - 1  # o_1 … o_L
-        codes, rows = self.ids[episodes, :positions], self.embed_ids[episodes, :positions]
-        later = torch.arange(positions).unsqueeze(0) >= steps.unsqueeze(1)
-        rows = rows.masked_fill(later | (rows == self.num_codes), -1)
+        codes = self.ids[episodes, :positions].flip(1)  # latest first
+        rows = self.embed_ids[episodes, :positions].flip(1)
+        later = torch.arange(positions - 1, -1, -1).unsqueeze(0) >= steps.unsqueeze(1)
+        unread = later | (rows == self.num_codes)  # o_t and after, and rare codes
+        codes, rows = _latest_distinct(codes, rows.masked_fill(unread, -1))
         per_step = (
             steps,
             self.embed_ids[episodes, steps],  # o_t
@@ -346,7 +361,7 @@ class CodeData:
             slots=slots,
             count=counts,
             length=self.valid.sum(dim=1),
-            integers=torch.cat((codes.flip(1), rows.flip(1), torch.stack(per_step, dim=1)), 1),
+            integers=torch.cat((codes, rows, torch.stack(per_step, dim=1)), 1),
             reward=self.rewards[episodes, steps],
         )
 
@@ -834,6 +849,36 @@ class BatchedPredictor(nn.Module):
         return (1 - torch.exp(-nll)).unsqueeze(0), nll
 
 
+def _latest_distinct(codes: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each history's distinct codes, at their latest occurrence: `codes` and embedding `rows`
+    (n, L), latest first, rows -1 where nothing is read, cut to (n, W), W the most distinct
+    codes any history holds (rows -1 after them). The history max over these reads the same
+    rows in the same order of first occurrence, so it has the values and gradients of the max
+    over all L positions; a Maze history of ~20 steps holds ~8 distinct codes, and the max's
+    cost goes with the positions it reads."""
+    n, positions = codes.shape
+    read = rows >= 0
+    # one key per (transition, code); a stable sort puts each key's latest position first
+    largest = int(codes.max()) if codes.numel() else 0
+    key = torch.arange(n).unsqueeze(1) * (largest + 1) + codes
+    # a position not read gets a key of its own: it never hides an earlier one of its code
+    key = torch.where(read, key, -1 - torch.arange(n * positions).view(n, positions)).flatten()
+    ranked = torch.argsort(key, stable=True)
+    first = torch.ones(len(ranked), dtype=torch.bool)
+    first[1:] = key[ranked[1:]] != key[ranked[:-1]]
+    keep = torch.zeros(n * positions, dtype=torch.bool)
+    keep[ranked[first]] = True
+    keep = keep.view(n, positions) & read
+    slot = torch.cumsum(keep, dim=1) - 1
+    width = max(int(keep.sum(dim=1).max()) if n else 0, 1)
+    out_codes = torch.zeros(n, width, dtype=codes.dtype)
+    out_rows = torch.full((n, width), -1, dtype=rows.dtype)
+    which, where = keep.nonzero(as_tuple=True)
+    out_codes[which, slot[which, where]] = codes[which, where]
+    out_rows[which, slot[which, where]] = rows[which, where]
+    return out_codes, out_rows
+
+
 def _few(transitions: int, episodes: int) -> bool:
     """Whether a batch of `episodes` with `transitions` to predict is in the history bag's
     regime (`FEW_PER_EPISODE`)."""
@@ -993,19 +1038,23 @@ class EffectEstimator:
                 for name, parameter in self.base.named_parameters():
                     parameter.copy_(fitted[name])
             return
-        steps = config.base_steps
+        steps, whole = config.base_steps, False
         if warm_start is not None:
             largest = max(self.data.num_codes, len(warm_start.observed))
             self.base.warm_start(
                 warm_start, self.data.observed, classes_are_codes=largest <= config.max_classes
             )
             steps = config.warm_steps
+        elif config.whole_batch_steps > 0:
+            predicted = int(self.data.predicted[self.data.fit_episodes].sum())
+            if predicted <= config.batch_transitions:
+                steps, whole = config.whole_batch_steps, True
         masks = self._random_code_dropout
         if members is not None:
             self.base = self.base.select(list(members))
             masks = self._dropout_of(list(members))
         fitted_members = torch.arange(config.ensemble) if members is None else torch.tensor(members)
-        self._base_optimizer = self._fit(self.base, fitted_members, masks, steps)
+        self._base_optimizer = self._fit(self.base, fitted_members, masks, steps, whole=whole)
 
     @property
     def presence(self) -> torch.Tensor:
@@ -1068,9 +1117,12 @@ class EffectEstimator:
         masks,
         steps: int,
         optimizer_state: dict[str, Any] | None = None,
+        whole: bool = False,
     ) -> FlatAdam:
         """Adam on minibatches of training episodes; the minibatch order depends only on the
         seed, so every model fine-tuned for the same number of steps sees the same batches.
+        With `whole`, every step takes all training episodes, and the rate falls linearly from
+        `whole_batch_learning_rate` (`PredictorConfig.whole_batch_steps`).
         Model k stands for ensemble member `members[k]` and skips the episodes held out for it.
         `masks` maps a batch of episodes to (masked positions (K, B, L+1), masked codes
         (K, 1 or B, |Ô|)), the positions None where whole codes are masked wherever they occur.
@@ -1088,9 +1140,14 @@ class EffectEstimator:
         # Few transitions per episode (the reward target): gather each batch's from a table
         # laid out once (BatchedPredictor.transition_loss, the same loss in fewer operations).
         table = self.data.predicted_transitions() if mean_length <= FEW_PER_EPISODE else None
-        for _ in range(steps):
-            episodes = train[torch.randint(len(train), (size,), generator=generator)]
-            weights = self.data.fit_weights(episodes, members)
+        if whole:
+            episodes, weights = train, self.data.fit_weights(train, members)
+        for step in range(steps):
+            if whole:
+                optimizer.lr = self.config.whole_batch_learning_rate * (1 - step / steps)
+            else:
+                episodes = train[torch.randint(len(train), (size,), generator=generator)]
+                weights = self.data.fit_weights(episodes, members)
             masked, masked_codes = masks(episodes)
             if (
                 masked is None
