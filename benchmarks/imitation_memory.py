@@ -68,15 +68,28 @@ def expert_episodes(
 
 
 def clone(
-    agent: ActorCritic, data: list[tuple[torch.Tensor, torch.Tensor]], epochs: int, seed: int
-) -> float:
-    """Fit the agent's policy to the expert's actions (minibatches of 64 whole episodes);
-    returns the last epoch's action accuracy on the training episodes."""
-    generator = torch.Generator().manual_seed(seed)
+    agent: ActorCritic,
+    data: list[tuple[torch.Tensor, ...]],
+    epochs: int,
+    weight: float = 1.0,
+    generator: torch.Generator | None = None,
+) -> list[dict]:
+    """Fit the agent's policy to the expert's actions over whole episodes (minibatches of 64,
+    in an order drawn from `generator`, or torch's global RNG; Adam 1e-3, clipping 0.5).
+
+    Args:
+        data: per episode (agent inputs (L, D), expert actions (L,)), optionally with its
+            choice steps (L,) bool, whose loss is multiplied by `weight`.
+
+    Returns:
+        The training accuracy, on all steps and on the choice steps (None without them), every
+        10 epochs and at the last.
+    """
     optimizer = torch.optim.Adam(agent.parameters(), lr=1e-3, eps=1e-5)
-    accuracy = 0.0
-    for _ in tqdm(range(epochs), desc="cloning", leave=False):
-        correct = total = 0
+    labelled = len(data[0]) > 2
+    curve = []
+    for epoch in tqdm(range(1, epochs + 1), desc="cloning", leave=False):
+        hits = steps = choice_hits = choice_steps = 0
         for batch in torch.randperm(len(data), generator=generator).split(64):
             inputs = pad_sequence([data[i][0] for i in batch], batch_first=True)
             actions = pad_sequence([data[i][1] for i in batch], batch_first=True)
@@ -84,15 +97,33 @@ def clone(
                 [torch.ones(len(data[i][1]), dtype=torch.bool) for i in batch], batch_first=True
             )
             logits, _ = agent.evaluate(inputs, agent.initial_state(len(batch)))
-            loss = torch.nn.functional.cross_entropy(logits[valid], actions[valid])
+            if labelled:
+                choices = pad_sequence([data[i][2] for i in batch], batch_first=True)[valid]
+                losses = torch.nn.functional.cross_entropy(
+                    logits[valid], actions[valid], reduction="none"
+                )
+                weights = 1 + (weight - 1) * choices.float()
+                loss = (weights * losses).sum() / weights.sum()
+            else:
+                loss = torch.nn.functional.cross_entropy(logits[valid], actions[valid])
             optimizer.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(agent.parameters(), 0.5)
             optimizer.step()
-            correct += int((logits[valid].argmax(-1) == actions[valid]).sum())
-            total += int(valid.sum())
-        accuracy = correct / total
-    return accuracy
+            hit = logits[valid].argmax(dim=-1) == actions[valid]
+            hits, steps = hits + int(hit.sum()), steps + int(valid.sum())
+            if labelled:
+                choice_hits += int(hit[choices].sum())
+                choice_steps += int(choices.sum())
+        if epoch % 10 == 0 or epoch == epochs:
+            curve.append(
+                {
+                    "epoch": epoch,
+                    "accuracy": round(hits / steps, 4),
+                    "choice_accuracy": round(choice_hits / choice_steps, 4) if labelled else None,
+                }
+            )
+    return curve
 
 
 @torch.no_grad()
@@ -125,7 +156,7 @@ def run(
     envs.close()
     started = time.perf_counter()
     data = expert_episodes(env_id, agent, episodes, seed)
-    accuracy = clone(agent, data, epochs, seed)
+    curve = clone(agent, data, epochs, generator=torch.Generator().manual_seed(seed))
     return {
         "level": level,
         "method": method,
@@ -134,7 +165,7 @@ def run(
         "episodes": episodes,
         "epochs": epochs,
         "seed": seed,
-        "train_action_accuracy": round(accuracy, 4),
+        "train_action_accuracy": curve[-1]["accuracy"],
         "greedy": play(env_id, agent, 300, True, seed + 1_000),
         "sampled": play(env_id, agent, 300, False, seed + 2_000),
         "seconds": round(time.perf_counter() - started, 1),

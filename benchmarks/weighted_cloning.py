@@ -26,8 +26,7 @@ import time
 import numpy as np
 import torch
 from choice_probe import is_choice
-from imitation_memory import play, write_result
-from torch.nn.utils.rnn import pad_sequence
+from imitation_memory import clone, play, write_result
 from tqdm import tqdm
 
 from thci.config import TrainConfig
@@ -66,45 +65,6 @@ def labelled_episodes(env_id: str, agent: ActorCritic, episodes: int, seed: int)
     return out
 
 
-def clone(agent: ActorCritic, data: list[Episode], weight: float, epochs: int) -> list[dict]:
-    """Weighted cross-entropy over whole episodes (minibatches of 64, Adam 1e-3, clipping
-    0.5); returns the training accuracy, all steps and choice steps, every 10 epochs."""
-    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-3, eps=1e-5)
-    curve = []
-    for epoch in tqdm(range(1, epochs + 1), desc="cloning", leave=False):
-        hits = steps = choice_hits = choice_steps = 0
-        for batch in torch.randperm(len(data)).split(64):
-            inputs, actions, choices = (
-                pad_sequence([data[i][k] for i in batch], batch_first=True) for k in range(3)
-            )
-            valid = pad_sequence(
-                [torch.ones(len(data[i][1]), dtype=torch.bool) for i in batch], batch_first=True
-            )
-            logits, _ = agent.evaluate(inputs, agent.initial_state(len(batch)))
-            losses = torch.nn.functional.cross_entropy(
-                logits[valid], actions[valid], reduction="none"
-            )
-            weights = 1 + (weight - 1) * choices[valid].float()
-            loss = (weights * losses).sum() / weights.sum()
-            optimizer.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(agent.parameters(), 0.5)
-            optimizer.step()
-            hit = logits[valid].argmax(dim=-1) == actions[valid]
-            hits, steps = hits + int(hit.sum()), steps + int(valid.sum())
-            choice_hits += int(hit[choices[valid]].sum())
-            choice_steps += int(choices[valid].sum())
-        if epoch % 10 == 0 or epoch == epochs:
-            curve.append(
-                {
-                    "epoch": epoch,
-                    "accuracy": round(hits / steps, 3),
-                    "choice_accuracy": round(choice_hits / choice_steps, 3),
-                }
-            )
-    return curve
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--level", type=int, choices=[1, 2, 3, 4], default=1)
@@ -123,7 +83,7 @@ def main() -> None:
     envs.close()
     started = time.perf_counter()
     data = labelled_episodes(env_id, agent, args.episodes, args.seed)
-    curve = clone(agent, data, args.weight, args.epochs)
+    curve = clone(agent, data, args.epochs, args.weight)
     result = {
         **vars(args),
         "choice_share": round(float(torch.cat([d[2] for d in data]).float().mean()), 4),
