@@ -30,6 +30,7 @@ from thci.causal.predictor import (
     CodeData,
     EffectEstimate,
     EffectEstimator,
+    HistoryPairs,
     Intervention,
     PredictorConfig,
     _group_ids,
@@ -531,12 +532,13 @@ class _TableEstimator:
         episodes = episodes or {int(c): set(range(100)) for c in codes}
         self.data = type("Data", (), {"observed": codes, "num_codes": len(codes)})()
         held_out = 1 + max(max(e, default=0) for e in episodes.values())
-        self.presence = torch.zeros(held_out, len(codes), dtype=torch.bool)
-        for code, holding in episodes.items():
-            self.presence[list(holding), code] = True
+        pairs = [(e, code) for code, holding in episodes.items() for e in sorted(holding)]
+        self.history_pairs = HistoryPairs(
+            torch.tensor([e for e, _ in pairs]), torch.tensor([c for _, c in pairs]), held_out
+        )
 
     def support(self, codes):
-        return int(self.presence[:, list(codes)].any(dim=1).sum())
+        return self.history_pairs.support(codes)
 
     def ate(self, interventions, eliminated):
         lower = [sum(self.bounds[int(c)][0] for c in i.codes) for i in interventions]
@@ -765,6 +767,16 @@ def test_support_counts_held_out_episodes_with_the_code_in_a_history():
         )
         assert estimator.support(np.array([code])) == expected
     assert estimator.support(np.arange(data.num_codes)) == len(ids)
+    # the counts and co-occurrences the substitute test reads, against a dense matrix
+    dense = torch.zeros(len(ids), data.num_codes, dtype=torch.long)
+    for e in range(len(ids)):
+        dense[e, ids[e, : int(valid[e].sum()) - 1]] = 1
+    pairs = estimator.history_pairs
+    assert torch.equal(pairs.counts(data.num_codes), dense.sum(dim=0))
+    rows, columns = np.array([3, 0, 7]), np.array([5, 3, 11, 1])
+    together = dense[:, rows].T @ dense[:, columns]
+    assert torch.equal(pairs.together(rows, columns), together)
+    assert pairs.num_episodes == len(ids) and int(together.max()) > 0
 
 
 def test_warm_start_carries_each_code_to_its_row_and_class():

@@ -283,23 +283,23 @@ class _Search:
         monotone in the masked set), i.e. eliminating k instead of c would have been as valid.
         Each candidate is tested against the search's own O^w (not one with earlier admissions
         removed), so an unrelated code exclusive of k is not admitted because some other
-        substitute already tells k. Candidates are found with one product of the held-out
-        episodes' presence matrix; each costs one batched pass (its partners side by side)."""
+        substitute already tells k. Candidates are found from the held-out episodes'
+        (episode, code) pairs; each costs one batched pass (its partners side by side)."""
         causes = np.setdiff1d(self.confirmed, self.eliminated)
         if len(causes) == 0 or len(self.eliminated) == 0:
             return
-        presence = self.estimator.presence  # (E_test, |Ô|) bool
+        pairs = self.estimator.history_pairs
         eliminated = self.eliminated
-        counts = presence.sum(dim=0)
+        counts = pairs.counts(self.estimator.data.num_codes)
         candidates = eliminated[(counts[eliminated] >= min_support).numpy()]
         if len(candidates) == 0:
             return
-        # (causes, candidates): held-out episodes holding both
-        together = presence[:, causes].T.float() @ presence[:, candidates].float()
+        together = pairs.together(causes, candidates)  # (causes, candidates)
         # Never together where independence would put them together in EXCLUSIVE_EXPECTED or
         # more episodes (a one-sided 5% test): a rare cause is "exclusive" of most codes by
         # chance, and testing each of them cost 1,720 passes on App. J's |O| = 1000 data.
-        expected = counts[causes].unsqueeze(1) * counts[candidates].unsqueeze(0) / len(presence)
+        expected = counts[causes].unsqueeze(1) * counts[candidates].unsqueeze(0)
+        expected = expected / pairs.num_episodes
         exclusive = (together == 0) & (expected >= EXCLUSIVE_EXPECTED)
         admitted = []
         for j, c in enumerate(candidates.tolist()):
