@@ -208,12 +208,12 @@ class TrainConfig:
     every batch holds ~6x more of the transitions that decide the reward, and on eleven new
     pools 400 steps kept what 1000 did on all eleven (250 steps: extra codes on three)."""
     ci_whole_batch_steps: int = 250
-    """A first-round fit whose pool holds at most 2048 transitions to predict (Maze pools)
-    takes them all at every step, for this many steps from Adam rate 1e-2 decayed linearly,
-    instead of ci_base_steps minibatch steps (0: minibatches). It is the round the RL loop
-    may wait for: with 250, Maze L1-L2 runs solve at the same steps as with minibatches and
-    wait 3-10% of the run instead of 9-20% (PredictorConfig.whole_batch_steps,
-    docs/experiments.md)."""
+    """A fit from scratch (the first round's; every round's with --ci-warm-steps 0) whose pool
+    holds at most 2048 transitions to predict (Maze pools) takes them all at every step, for
+    this many steps from Adam rate 1e-2 decayed linearly, instead of ci_base_steps minibatch
+    steps (0: minibatches). The first round is the one the RL loop may wait for: with 250,
+    Maze L1-L2 runs solve at the same steps as with minibatches and wait 3-10% of the run
+    instead of 9-20% (PredictorConfig.whole_batch_steps, docs/experiments.md)."""
     ci_warm_steps: int = 1000
     """Adam steps of the effect predictor in later rounds, which continue the previous round's
     predictor on the grown pool (0: every round fits from scratch for ci_base_steps). On a
