@@ -268,6 +268,27 @@ def test_hai_selection_is_binary_and_trained_through_the_relaxation():
     assert selector_grad is not None and bool(selector_grad.abs().sum() > 0)
 
 
+def test_hai_reads_the_max_of_the_selected_values_and_nothing_of_the_others():
+    torch.manual_seed(0)
+    memory = make_memory("hai", 16, 16, **SMALL)
+    features = torch.rand(2, 6, 16)
+    selected = torch.tensor([[1, 0, 0, 1, 0, 0], [0, 1, 1, 0, 0, 1]], dtype=torch.bool)
+    # logistic noise of +-13.8 decides the selection whatever the selector's small logits
+    noise = torch.where(selected, 1 - 1e-6, 1e-6).unsqueeze(-1)
+    read, _ = memory(torch.cat((features, noise), -1), memory.initial_state(2))
+    values = memory.value(features)  # (2, 6, 16)
+    for b in range(2):
+        for t in range(6):
+            chosen = selected[b, : t + 1].nonzero().flatten()
+            expected = values[b, chosen].amax(0) if len(chosen) else torch.zeros(16)
+            assert torch.allclose(read[b, t], expected)
+    # an unselected step changes nothing that is read
+    changed = features.clone()
+    changed[~selected] = torch.rand(int((~selected).sum()), 16)
+    other, _ = memory(torch.cat((changed, noise), -1), memory.initial_state(2))
+    assert torch.equal(other, read)
+
+
 def test_oracle_keeps_exactly_the_labelled_observations():
     torch.manual_seed(0)
     agent = agent_for("oracle")
