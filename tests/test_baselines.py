@@ -287,6 +287,12 @@ def test_hai_reads_the_max_of_the_selected_values_and_nothing_of_the_others():
     changed[~selected] = torch.rand(int((~selected).sum()), 16)
     other, _ = memory(torch.cat((changed, noise), -1), memory.initial_state(2))
     assert torch.equal(other, read)
+    # runs from before the max read the mean (--hai-read mean)
+    mean = make_memory("hai", 16, 16, **SMALL, hai_read="mean")
+    mean.load_state_dict(memory.state_dict())
+    read, _ = mean(torch.cat((features, noise), -1), mean.initial_state(2))
+    chosen = selected[1, :3].nonzero().flatten()
+    assert torch.allclose(read[1, 2], values[1, chosen].mean(0))
 
 
 def test_oracle_keeps_exactly_the_labelled_observations():

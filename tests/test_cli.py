@@ -382,6 +382,8 @@ def test_a_config_written_before_the_empty_start_resumes_with_a_full_memory():
 def test_a_config_written_before_substitutes_and_whole_batch_fits_resumes_without_them():
     current = TrainConfig(method="t-hci").to_dict()
     assert current["ci_substitutes"] and current["ci_whole_batch_steps"] > 0
-    old = {k: v for k, v in current.items() if k not in ("ci_substitutes", "ci_whole_batch_steps")}
-    restored = TrainConfig.from_dict(old)
+    assert current["hai_read"] == "max"
+    new_fields = ("ci_substitutes", "ci_whole_batch_steps", "hai_read")
+    restored = TrainConfig.from_dict({k: v for k, v in current.items() if k not in new_fields})
     assert not restored.ci_substitutes and restored.ci_whole_batch_steps == 0
+    assert restored.hai_read == "mean"

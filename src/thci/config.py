@@ -83,6 +83,10 @@ class TrainConfig:
     """Width of the recurrent memory."""
     history_window: int = 32
     """sai, hai: how many of the episode's latest observations a step attends to."""
+    hai_read: Literal["max", "mean"] = "max"
+    """hai: how the memory reads the selected observations' values. The mean (before
+    2026-12-06) diluted a selected cue among the other selected steps (Maze L2: 1 of 3 seeds
+    solved, 3 of 3 with max; docs/baselines.md)."""
     nm_map_size: int = 18
     """nm: the Neural Map is nm_map_size x nm_map_size cells (PaperMaze is 18 x 15)."""
     nm_channels: int = 16
@@ -383,8 +387,10 @@ class TrainConfig:
             values.setdefault("ci_first_lag", values.get("ci_lag", cls.ci_lag))
         # Configs written before substitutes were admitted (2026-12-06) ran without them.
         values.setdefault("ci_substitutes", False)
-        # ... and before the whole-batch first fit (2026-12-06, later), with minibatches.
+        # ... and before the whole-batch first fit (2026-12-06, later), with minibatches,
+        # and HAI runs with the mean read.
         values.setdefault("ci_whole_batch_steps", 0)
+        values.setdefault("hai_read", "mean")
         if values.get("run_dir") is not None:
             values["run_dir"] = Path(values["run_dir"])
         if values.get("cell_layout") is not None:  # JSON has no tuples

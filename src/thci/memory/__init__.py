@@ -29,7 +29,8 @@ class MemorySpec:
         input_size: D of the encoder's features. hidden_size: recurrent width.
         observation_size: D of a flat observation (WMG embeds it itself).
         babyai_observations: the observations are thci's flat BabyAI view (WMG factors).
-        window: past steps SAI and HAI attend to. nm_map_size, nm_channels: the Neural Map.
+        window: past steps SAI and HAI attend to. hai_read: HAI's read, "max" or "mean".
+        nm_map_size, nm_channels: the Neural Map.
         wmg_memos, wmg_layers, wmg_heads, wmg_head_size: the Working Memory Graph.
     """
 
@@ -39,6 +40,7 @@ class MemorySpec:
     babyai_observations: bool = False
     # the defaults are the command line's (documented in TrainConfig)
     window: int = TrainConfig.history_window
+    hai_read: str = TrainConfig.hai_read
     nm_map_size: int = TrainConfig.nm_map_size
     nm_channels: int = TrainConfig.nm_channels
     wmg_memos: int = TrainConfig.wmg_memos
@@ -67,7 +69,7 @@ MEMORIES: dict[str, Callable[[MemorySpec], Memory]] = {
     "nm": lambda s: NeuralMap(s.input_size, s.nm_map_size, s.nm_channels),
     "wmg": _wmg,
     "sai": lambda s: SoftAttentionMemory(s.input_size, s.hidden_size, s.window),
-    "hai": lambda s: HardAttentionMemory(s.input_size, s.hidden_size, s.window),
+    "hai": lambda s: HardAttentionMemory(s.input_size, s.hidden_size, s.window, s.hai_read),
     "oracle": lambda s: OracleMemory(s.input_size, s.hidden_size),
 }
 

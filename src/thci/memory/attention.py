@@ -31,6 +31,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from thci.errors import ThciError
 from thci.memory.base import NOISE, Memory
 
 SAI_HEADS = 4
@@ -136,12 +137,16 @@ class HardAttentionMemory(WindowMemory):
 
     Args:
         input_size: D. hidden_size: width of the selector's hidden layer. window: W.
+        read: "max" of the selected values, or their "mean" (runs before 2026-12-06).
     """
 
     side_inputs = ((NOISE, 1),)
 
-    def __init__(self, input_size: int, hidden_size: int, window: int) -> None:
+    def __init__(self, input_size: int, hidden_size: int, window: int, read: str = "max") -> None:
         super().__init__(input_size, window)
+        if read not in ("max", "mean"):
+            raise ThciError(f"--hai-read must be max or mean, got {read!r}")
+        self.read = read
         self.selector = nn.Sequential(
             nn.Linear(input_size, hidden_size), nn.ReLU(), nn.Linear(hidden_size, 1)
         )
@@ -164,6 +169,9 @@ class HardAttentionMemory(WindowMemory):
         keys, key_weights, band, state = self.extend(state, features, self.select(x))
         attention = band.unsqueeze(0) * key_weights.unsqueeze(1)  # (B, L, W+L), hard 0/1
         values = self.value(keys)  # (B, W+L, D), >= 0: an unselected step reads as 0
+        if self.read == "mean":
+            read = attention @ values
+            return read / attention.sum(dim=-1, keepdim=True).clamp(min=1.0), state
         # z (hard in value) scales each value, so the max's gradient reaches the selection
         return (attention.unsqueeze(-1) * values.unsqueeze(1)).amax(dim=2), state
 

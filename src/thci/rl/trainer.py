@@ -73,6 +73,7 @@ def build_agent(config: TrainConfig, envs: VectorEnv) -> ActorCritic:
         observation_size=observation_size,
         babyai_observations=config.env.startswith("thci/BabyAI-"),
         window=config.history_window,
+        hai_read=config.hai_read,
         nm_map_size=config.nm_map_size,
         nm_channels=config.nm_channels,
         wmg_memos=config.wmg_memos,
