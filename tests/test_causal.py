@@ -534,7 +534,10 @@ class _TableEstimator:
         held_out = 1 + max(max(e, default=0) for e in episodes.values())
         pairs = [(e, code) for code, holding in episodes.items() for e in sorted(holding)]
         self.history_pairs = HistoryPairs(
-            torch.tensor([e for e, _ in pairs]), torch.tensor([c for _, c in pairs]), held_out
+            torch.tensor([e for e, _ in pairs]),
+            torch.tensor([c for _, c in pairs]),
+            held_out,
+            len(codes),
         )
 
     def support(self, codes):
@@ -772,7 +775,7 @@ def test_support_counts_held_out_episodes_with_the_code_in_a_history():
     for e in range(len(ids)):
         dense[e, ids[e, : int(valid[e].sum()) - 1]] = 1
     pairs = estimator.history_pairs
-    assert torch.equal(pairs.counts(data.num_codes), dense.sum(dim=0))
+    assert torch.equal(pairs.counts(), dense.sum(dim=0))
     rows, columns = np.array([3, 0, 7]), np.array([5, 3, 11, 1])
     together = dense[:, rows].T @ dense[:, columns]
     assert torch.equal(pairs.together(rows, columns), together)

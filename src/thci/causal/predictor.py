@@ -973,17 +973,18 @@ class HistoryPairs:
 
     Attributes:
         episodes: (P,) long, held-out episode rows 0 … num_episodes-1.
-        codes: (P,) long, dense code ids.
-        num_episodes: E_test, the held-out episodes.
+        codes: (P,) long, dense code ids 0 … num_codes-1.
+        num_episodes: E_test, the held-out episodes. num_codes: |Ô|.
     """
 
     episodes: torch.Tensor
     codes: torch.Tensor
     num_episodes: int
+    num_codes: int
 
-    def counts(self, num_codes: int) -> torch.Tensor:
-        """(num_codes,) long: held-out episodes holding each code."""
-        return torch.bincount(self.codes, minlength=num_codes)
+    def counts(self) -> torch.Tensor:
+        """(|Ô|,) long: held-out episodes holding each code."""
+        return torch.bincount(self.codes, minlength=self.num_codes)
 
     def support(self, codes: np.ndarray) -> int:
         """Held-out episodes holding any of `codes`."""
@@ -992,17 +993,20 @@ class HistoryPairs:
 
     def together(self, rows: np.ndarray, columns: np.ndarray) -> torch.Tensor:
         """(len(rows), len(columns)) long: held-out episodes holding both codes."""
+        row, column = self._position(rows), self._position(columns)
         holds = torch.zeros(len(rows), self.num_episodes, dtype=torch.bool)
-        for i, code in enumerate(rows.tolist()):
-            holds[i, self.episodes[self.codes == code]] = True
-        columns = torch.as_tensor(columns, dtype=torch.long)
-        largest = max(int(self.codes.max()) if len(self.codes) else 0, int(columns.max()))
-        column_of = torch.full((largest + 1,), -1, dtype=torch.long)
-        column_of[columns] = torch.arange(len(columns))
-        pair = column_of[self.codes]
-        chosen = pair >= 0
+        in_rows = row >= 0
+        holds[row[in_rows], self.episodes[in_rows]] = True
+        in_columns = column >= 0
         out = torch.zeros(len(rows), len(columns), dtype=torch.long)
-        return out.index_add_(1, pair[chosen], holds[:, self.episodes[chosen]].long())
+        return out.index_add_(1, column[in_columns], holds[:, self.episodes[in_columns]].long())
+
+    def _position(self, chosen: np.ndarray) -> torch.Tensor:
+        """(P,) long: each pair's code's position in `chosen` (distinct dense ids), -1 if not
+        there."""
+        position = torch.full((self.num_codes,), -1, dtype=torch.long)
+        position[torch.as_tensor(chosen, dtype=torch.long)] = torch.arange(len(chosen))
+        return position[self.codes]
 
 
 @dataclass(frozen=True)
@@ -1107,8 +1111,9 @@ class EffectEstimator:
             in_history[:, : valid.shape[1] - 1] = valid[:, 1:]
             rows = torch.arange(len(ids)).unsqueeze(1).expand_as(ids)
             pairs = torch.unique(rows[in_history] * self.data.num_codes + ids[in_history])
+            num_codes = self.data.num_codes
             self._history_pairs = HistoryPairs(
-                pairs // self.data.num_codes, pairs % self.data.num_codes, len(ids)
+                pairs // num_codes, pairs % num_codes, len(ids), num_codes
             )
         return self._history_pairs
 

@@ -290,7 +290,7 @@ class _Search:
             return
         pairs = self.estimator.history_pairs
         eliminated = self.eliminated
-        counts = pairs.counts(self.estimator.data.num_codes)
+        counts = pairs.counts()
         candidates = eliminated[(counts[eliminated] >= min_support).numpy()]
         if len(candidates) == 0:
             return
