@@ -151,7 +151,7 @@ def test_layout_rules(level: int) -> None:
         assert sorted(c.color == lv.target_color for _, c in balls) == [False, True]
         assert "grey" not in {c.color for _, c in balls}
         # Doors: A's is locked only in level 4, B's from level 2 on.
-        assert lv.door_a.is_locked == (level == 4) and not lv.door_a.is_open
+        assert lv.door_a.is_locked == (level == 4) and lv.door_a.is_open == (level == 1)
         assert lv.door_b.is_locked == (level >= 2) and not lv.door_b.is_open
         keys = [(kx, c) for kx, _, c in _objects(lv) if isinstance(c, Key)]
         where = {id(c): _room_of(lv, kx) for kx, c in keys}
@@ -175,6 +175,32 @@ def test_layout_rules(level: int) -> None:
             for off in (-2, -1, 1, 2):
                 assert lv.grid.get(dx + off, dy) is None
     assert sides == {0, 2}
+
+
+def test_level1_cue_first_and_choice_in_one_action() -> None:
+    """Level 1: facing A's open door at reset (the signpost mostly in view at once); the balls
+    flank the first cell inside B's door, so from there LEFT faces one and RIGHT the other."""
+    env = GoToBallLevel()
+    seen_at_reset = 0
+    for seed in range(100):
+        _, info = env.reset(seed=seed)
+        seen_at_reset += info["causal"]
+        toward_a = 2 if env.room_a == 0 else 0
+        assert env.agent_dir == toward_a and env.door_a.is_open and not env.door_b.is_open
+        dx, dy = env.door_b.cur_pos
+        assert dy == env.room_size // 2  # the middle of B's wall
+        inward = 1 if env.room_b == 2 else -1
+        balls = {tuple(env.target_ball.cur_pos), tuple(env.decoy_ball.cur_pos)}
+        assert balls == {(dx + inward, dy - 1), (dx + inward, dy + 1)}
+        for turn in (LEFT, RIGHT):
+            env.reset(seed=seed)
+            env.door_b.is_open = True
+            env.agent_pos, env.agent_dir = np.array((dx + inward, dy)), 0 if inward == 1 else 2
+            _, reward, terminated, _, info = env.step(turn)
+            faced = env.grid.get(*env.front_pos)
+            assert terminated and info["success"] == (faced is env.target_ball)
+            assert (reward > 0) == info["success"]
+    assert seen_at_reset >= 80
 
 
 def test_same_seed_same_layout_and_constant_mission() -> None:
@@ -301,7 +327,8 @@ def test_level4_target_needs_empty_hands() -> None:
 def test_causal_labels_in_hand_checked_situations(level: int) -> None:
     env = BABYAI_LEVELS[level]()
     _, info = env.reset(seed=7)
-    assert not info["causal"]  # A's door is closed: the signpost cannot be seen from M
+    if level > 1:
+        assert not info["causal"]  # A's door is closed: the signpost cannot be seen from M
     room_a = env.get_room(env.room_a, 0)
     inside = [
         (x, y)

@@ -246,9 +246,15 @@ class BabyAILevel(RoomGridLevel):
         room.objs.append(obj)
         return obj, pos
 
-    def _add_side_door(self, side: int, color: str, locked: bool) -> Door:
+    def _add_side_door(self, side: int, color: str, locked: bool, middle: bool = False) -> Door:
+        """The door between M and side room `side` (`middle`: in the middle of the wall,
+        instead of minigrid's random place along it)."""
         # Added from the side room so that RoomGrid marks that room (not M) as locked.
         door_idx = 0 if side == _LEFT_ROOM else 2
+        if middle:
+            room = self.get_room(side, 0)
+            x = room.door_pos[door_idx][0]
+            room.door_pos[door_idx] = (x, room.top[1] + self.room_size // 2)
         door, _ = self.add_door(side, 0, door_idx=door_idx, color=color, locked=locked)
         return door
 
@@ -404,16 +410,24 @@ def _blocks(env: BabyAILevel, pos: tuple[int, int]) -> bool:
 
 
 class GoToBallLevel(BabyAILevel):
-    """Level 1, go-to-ball: read the signpost in A, go back through M to B, go to the ball.
+    """Level 1, go-to-ball: look into A, go back across M to B, choose a ball at B's door.
 
-    Rooms 5x5 (3x3 inside). Doors M-A and M-B closed, not locked (``toggle`` opens them).
-    B holds the target ball (signpost colour) and a decoy ball (another colour). Success:
-    face the target ball (``GoToInstr``). Failure (reward 0): face the decoy. No distractors.
-    The signpost can often be read from M through the open door. Scripted expert: 15 steps
-    on average (at most 21 over 1500 seeds); limit 80 steps.
+    Rooms 5x5 (3x3 inside). The agent starts in M facing A, whose door is open, so the
+    signpost is usually in view from the first step (in 90% of layouts; otherwise a step or a
+    turn brings it in). Door M-B is closed, not locked (``toggle`` opens it), in the middle of
+    B's wall, and the two balls flank the first cell inside it (north and south of it, which one
+    is the target at random): one step into B, a single turn faces one of them. Success: face
+    the target ball (``GoToInstr``). Failure (reward 0): face the decoy. No distractors.
+    Scripted expert: 9 steps on average (at most 21 over 1500 seeds); limit 80 steps.
+
+    Why this layout (docs/babyai.md): with A closed and the balls anywhere in B, no method
+    learned to use the signpost in 5M steps: agents went to B without looking at A (the
+    signpost was seen in 14-52% of their episodes) and chose among balls over several
+    navigation steps. Here the cue comes first and the choice is one action, the shape of the
+    paper's maze (signposts near the entrance, the choice at the exit).
 
     ``info["causal"]``: the painted signpost cell of A's outer wall is drawn in the current
-    7x7 observation (typically while the agent is in A or looks into A through the open door).
+    7x7 observation (seen from M through the open door, or from inside A).
     """
 
     LEVEL = 1
@@ -423,8 +437,29 @@ class GoToBallLevel(BabyAILevel):
 
     def _populate(self) -> None:
         self.door_a = self._add_side_door(self.room_a, self._rand_color(), locked=False)
-        self.door_b = self._add_side_door(self.room_b, self._rand_color(), locked=False)
-        self._add_balls()
+        self.door_b = self._add_side_door(
+            self.room_b, self._rand_color(), locked=False, middle=True
+        )
+        self._add_balls_at_entry()
+        self.door_a.is_open = True
+        self.agent_dir = 2 if self.room_a == _LEFT_ROOM else 0  # facing A
+
+    def _add_balls_at_entry(self) -> None:
+        """Target and decoy on the two cells beside the first cell inside B's door."""
+        room = self.get_room(self.room_b, 0)
+        door_x, door_y = self.door_b.cur_pos
+        entry_x = door_x + (1 if self.room_b == _RIGHT_ROOM else -1)
+        decoy_color = self._rand_elem([c for c in _SIGNPOST_COLORS if c != self.target_color])
+        north_is_target = self._rand_bool()
+        for y, is_target in ((door_y - 1, north_is_target), (door_y + 1, not north_is_target)):
+            ball = Ball(self.target_color if is_target else decoy_color)
+            self.grid.set(entry_x, y, ball)
+            ball.init_pos = ball.cur_pos = (entry_x, y)
+            room.objs.append(ball)
+            if is_target:
+                self.target_ball = ball
+            else:
+                self.decoy_ball = ball
         self.instrs = _GoToBallInstr(ObjDesc("ball", self.target_color))
 
     def _expert_subgoal(self) -> _Subgoal:
