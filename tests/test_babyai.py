@@ -187,6 +187,7 @@ def test_level1_cue_first_and_choice_in_one_action() -> None:
         seen_at_reset += info["causal"]
         toward_a = 2 if env.room_a == 0 else 0
         assert env.agent_dir == toward_a and env.door_a.is_open and not env.door_b.is_open
+        assert env.door_a.color == env.door_b.color == "grey"  # no colour to match, no variety
         dx, dy = env.door_b.cur_pos
         assert dy == env.room_size // 2  # the middle of B's wall
         inward = 1 if env.room_b == 2 else -1
