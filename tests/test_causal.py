@@ -902,6 +902,24 @@ def test_ci_rounds_stop_once_two_in_a_row_agree_also_with_undecided_observations
     assert not loop.due(config.ci_every)
 
 
+def test_ci_rounds_that_keep_nothing_never_agree():
+    """An empty memory leaves the policy memoryless, so a later pool can still show what
+    an early one (a policy that rarely reaches an outcome) did not."""
+    config = TrainConfig(
+        method="t-hci", ci_min_episodes=0, ci_min_rewarded_episodes=0, ci_max_rounds=4
+    )
+    loop = CausalInferenceLoop(config, gym.spaces.Box(0, 1, (3,)), 2, 1, Gate(3))
+    job = SimpleNamespace(pool=SimpleNamespace(lengths=np.ones(5)))
+    observed, nothing = np.arange(3), np.zeros(0, dtype=np.int64)
+    for rounds in range(1, 5):
+        result = CIResult("t-hci", observed, observed, nothing, nothing)
+        outcome = CIOutcome(result, Gate(3).state_dict(), 1.0, 0.1, None)
+        loop.pending = _PendingRound(job, 0, 0, _Computed(outcome))
+        loop.step(1)
+        # a fifth round only if ci_max_rounds allowed it
+        assert loop.due(config.ci_every) == (rounds < config.ci_max_rounds)
+
+
 def test_no_ci_round_starts_once_the_run_has_solved_but_one_in_flight_still_applies():
     config = TrainConfig(method="t-hci", ci_min_episodes=0, ci_min_rewarded_episodes=0)
     loop = CausalInferenceLoop(config, gym.spaces.Box(0, 1, (3,)), 2, 1, Gate(3))

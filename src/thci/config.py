@@ -188,7 +188,8 @@ class TrainConfig:
     worth predicting, every observation looks like it has no effect, and a round would eliminate
     the very causes (seen in Maze L3, where random play is rewarded in 0.5% of episodes)."""
     ci_max_rounds: int = 8
-    """At most this many CI rounds (rounds also stop once two in a row agree)."""
+    """At most this many CI rounds (rounds also stop once two in a row agree on a non-empty
+    causal set; rounds that keep nothing go on, as the policy stays memoryless)."""
     ci_pool_episodes: int = 2000
     """Capacity of the replay pool (whole episodes, oldest dropped first)."""
     ci_z: int = 4

@@ -401,7 +401,14 @@ class CausalInferenceLoop:
         (seed 2, 1000-step fits) two rounds kept the labels {0, 1, 2} with the complementary
         indicators 0 and 1 undecided (each is redundant given the other, so neither shows an
         effect alone), and the fourth round found the pair's effect 0.06 [0.04, 0.08] and
-        eliminated both: success 0.56 at 1M steps."""
+        eliminated both: success 0.56 at 1M steps.
+
+        Rounds that keep nothing never count as agreeing. Early pools can show no effect at
+        all: on BabyAI-L1 (seed 1) the first two rounds ran on the pool of a policy that
+        wandered until the time limit and reached a ball in ~1 of 4 episodes; both kept
+        nothing, rounds stopped, and the policy stayed memoryless (0.48 success at 1.5M steps).
+        A round on the same run's pool at 520k steps (a memoryless policy that reaches a ball
+        in most episodes) found the signpost codes (ATE 0.42 [0.39, 0.44] for the first part)."""
         return len(self.rounds) < self.config.ci_max_rounds and self.stable_rounds < 2
 
     def make_job(self, pool: PoolArrays) -> CIJob:
@@ -480,8 +487,12 @@ class CausalInferenceLoop:
         self.predictor_state = outcome.predictor
         result = outcome.result
         self.causal_so_far.update(int(c) for c in result.confirmed)
-        same = self.last_result is not None and np.array_equal(
-            self.last_result.causal, result.causal
+        # Two empty results do not settle anything: the memory stays empty, so the policy
+        # stays memoryless and later pools stay as informative (see _more_rounds).
+        same = (
+            self.last_result is not None
+            and len(result.causal) > 0
+            and np.array_equal(self.last_result.causal, result.causal)
         )
         self.stable_rounds = self.stable_rounds + 1 if same else 1
         self.last_result = result
