@@ -228,8 +228,7 @@ def random_babyai_views(seeds: range) -> tuple[np.ndarray, np.ndarray]:
 
 def test_cell_set_codes_of_babyai_views_separate_signpost_views():
     """Known answer: the signpost is the only coloured wall, so every code's observations
-    agree on info["causal"], and codes recur far more often than exact views do (3.2x fewer
-    codes on these 40 random episodes, which mostly see M and the open room A)."""
+    agree on info["causal"], and codes recur far more often than exact views do."""
     views, labels = random_babyai_views(range(40))
     assert labels.any() and not labels.all()
     space = gym.make("thci/BabyAI-L1-v0").observation_space
@@ -237,4 +236,4 @@ def test_cell_set_codes_of_babyai_views_separate_signpost_views():
     for code in np.unique(codes):
         assert len(set(labels[codes == code].tolist())) == 1
     exact = ExactDiscretizer().encode(views)
-    assert len(np.unique(codes)) * 3 < len(np.unique(exact))
+    assert len(np.unique(codes)) * 4 < len(np.unique(exact))

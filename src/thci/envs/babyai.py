@@ -258,10 +258,13 @@ class BabyAILevel(RoomGridLevel):
         door, _ = self.add_door(side, 0, door_idx=door_idx, color=color, locked=locked)
         return door
 
+    def _decoy_color(self) -> str:
+        """Same palette as the target (no grey): no ball colour may hint at being the decoy."""
+        return self._rand_elem([c for c in _SIGNPOST_COLORS if c != self.target_color])
+
     def _add_balls(self) -> None:
         """Target and decoy ball in room B."""
-        # Same palette as the target (no grey): no ball colour may hint at being the decoy.
-        decoy_color = self._rand_elem([c for c in _SIGNPOST_COLORS if c != self.target_color])
+        decoy_color = self._decoy_color()
         self.target_ball, _ = self.add_object(self.room_b, 0, "ball", self.target_color)
         self.decoy_ball, _ = self.add_object(self.room_b, 0, "ball", decoy_color)
 
@@ -413,14 +416,14 @@ class GoToBallLevel(BabyAILevel):
     """Level 1, go-to-ball: look into A, go back across M to B, choose a ball at B's door.
 
     Rooms 5x5 (3x3 inside). The agent starts in M facing A, whose door is open, so the
-    signpost is usually in view from the first step (in 90% of layouts; otherwise a step or a
+    signpost is usually in view from the first step (in 89% of layouts; otherwise a step or a
     turn brings it in). Door M-B is closed, not locked (``toggle`` opens it), in the middle of
     B's wall, and the two balls flank the first cell inside it (north and south of it, which one
     is the target at random): one step into B, a single turn faces one of them. Success: face
     the target ball (``GoToInstr``). Failure (reward 0): face the decoy. No distractors.
-    Both doors are grey: no key must match them here, and random door colours made six times
-    as many distinct views carry the signpost (on 600 known-answer episodes, 149 of 557
-    cell-set codes against 41 of 118), each rarer, which is what CI has to find.
+    Both doors are grey: no key must match them here, and random door colours spread the
+    signpost over 3.6 times as many distinct views, each rarer, which is what CI has to find
+    (on 600 known-answer episodes, 149 signpost codes of 557 cell-set codes against 41 of 118).
     Scripted expert: 9 steps on average (at most 21 over 1500 seeds); limit 80 steps.
 
     Why this layout (docs/babyai.md): with A closed and the balls anywhere in B, no method
@@ -439,8 +442,8 @@ class GoToBallLevel(BabyAILevel):
     MISSION = "go to the ball of the signpost's colour"
 
     def _populate(self) -> None:
-        # Grey doors: no key matches them here, and random door colours made six times as
-        # many distinct views carry the signpost (docstring).
+        # Grey doors: no key matches them here, and random door colours spread the signpost
+        # over 3.6 times as many distinct views (docstring).
         self.door_a = self._add_side_door(self.room_a, "grey", locked=False)
         self.door_b = self._add_side_door(self.room_b, "grey", locked=False, middle=True)
         self._add_balls_at_entry()
@@ -449,20 +452,18 @@ class GoToBallLevel(BabyAILevel):
 
     def _add_balls_at_entry(self) -> None:
         """Target and decoy on the two cells beside the first cell inside B's door."""
-        room = self.get_room(self.room_b, 0)
         door_x, door_y = self.door_b.cur_pos
         entry_x = door_x + (1 if self.room_b == _RIGHT_ROOM else -1)
-        decoy_color = self._rand_elem([c for c in _SIGNPOST_COLORS if c != self.target_color])
+        self.target_ball, self.decoy_ball = Ball(self.target_color), Ball(self._decoy_color())
         north_is_target = self._rand_bool()
-        for y, is_target in ((door_y - 1, north_is_target), (door_y + 1, not north_is_target)):
-            ball = Ball(self.target_color if is_target else decoy_color)
-            self.grid.set(entry_x, y, ball)
-            ball.init_pos = ball.cur_pos = (entry_x, y)
-            room.objs.append(ball)
-            if is_target:
-                self.target_ball = ball
-            else:
-                self.decoy_ball = ball
+        north, south = (
+            (self.target_ball, self.decoy_ball)
+            if north_is_target
+            else (self.decoy_ball, self.target_ball)
+        )
+        self.put_obj(north, entry_x, door_y - 1)
+        self.put_obj(south, entry_x, door_y + 1)
+        self.get_room(self.room_b, 0).objs.extend((north, south))
         self.instrs = _GoToBallInstr(ObjDesc("ball", self.target_color))
 
     def _expert_subgoal(self) -> _Subgoal:
