@@ -8,13 +8,17 @@ here are our reconstruction with minigrid's BabyAI machinery (:class:`RoomGridLe
 ``add_door``, ``add_object``, ``GoToInstr`` / ``PickupInstr`` with ``ObjDesc`` verifiers).
 
 Shared layout (every level): three rooms in a row (``num_rows=1, num_cols=3``). The agent starts
-in the middle room M at a random cell and heading. One side room, A (left or right at random),
+in the middle room M at a random cell, facing one side room, A (left or right at random), which
 holds the **signpost**: one segment of A's outer wall painted in the *target colour*. The other
-side room, B, holds two balls: the target (target colour) and a decoy (another colour). The task
-is to go to (levels 1-3) or pick up (level 4) the ball whose colour the signpost shows; going to
-/ picking up any other ball fails the episode (reward 0). So the agent departs from M to A,
-returns through M and its doorways to B, and chooses a ball there with the signpost out of
-view: it must remember the colour. Doors and keys on the way add sub-goals from level to level.
+side room, B, holds two balls, the target (target colour) and a decoy (another colour), on the
+two cells beside the first cell inside B's door, which is in the middle of B's wall. The task is
+to go to (levels 1-3) or pick up (level 4) the ball whose colour the signpost shows; going to /
+picking up the other ball fails the episode (reward 0). So the agent looks into A first (its
+door is open in levels 1-3; in level 4 it must unlock it), returns through M and its doorways
+to B, and chooses a ball at B's door, one turn away, with the signpost out of view: it must
+remember the colour. Keys, boxes, locked doors and distractors on the way add sub-goals and
+length from level to level. The cue first and the choice in one action: with A closed and the
+balls anywhere in B no method learned to use the signpost (docs/babyai.md).
 
 ``info["causal"]`` (reset and every step) is True iff the signpost is drawn in the current
 observation: its cell is inside the agent's 7x7 view and not hidden behind a wall or closed
@@ -169,6 +173,7 @@ class BabyAILevel(RoomGridLevel):
     MISSION: ClassVar[str]
     NUM_DISTRACTORS: ClassVar[int] = 0
     DISTRACTOR_KINDS: ClassVar[tuple[str, ...]] = ("key", "box")
+    BALL_INSTR: ClassVar[type[GoToInstr | PickupInstr]]
 
     def __init__(self, max_steps: int | None = None, **kwargs: Any) -> None:
         if max_steps is None:
@@ -206,23 +211,18 @@ class BabyAILevel(RoomGridLevel):
         self.room_b = 2 - self.room_a
         self.target_color = self._rand_elem(_SIGNPOST_COLORS)
         self._add_signpost()
-        self._populate()
+        self._add_doors()
+        self._add_balls_at_entry()  # before the other objects, which must not take their cells
+        self._add_objects()
         self.check_objs_reachable()
-        if isinstance(self.instrs, _GoToBallInstr):
-            self._check_target_approachable()
+        self.agent_dir = 2 if self.room_a == _LEFT_ROOM else 0  # facing A: the cue comes first
 
-    def _check_target_approachable(self) -> None:
-        """RejectSampling unless someone entering B can face the target ball without first
-        facing the decoy (objects around the balls could force that, failing the episode)."""
-        door = tuple(self.door_b.cur_pos)
-        entering = (*door, 0 if self.room_b == _RIGHT_ROOM else 2)
-        try:
-            _shortest_path(self, entering, _face(self, self.target_ball, None).goal)
-        except RuntimeError:
-            raise RejectSampling("the decoy guards the target ball") from None
-
-    def _populate(self) -> None:
+    def _add_doors(self) -> None:
+        """Set ``door_a`` and ``door_b`` (B's in the middle of its wall: ``_add_side_door``)."""
         raise NotImplementedError
+
+    def _add_objects(self) -> None:
+        """Keys, boxes and distractors (after the balls, so never on their cells)."""
 
     def _add_signpost(self) -> None:
         """Paint one cell of room A's outer walls (not corners, not the wall shared with M)."""
@@ -262,11 +262,21 @@ class BabyAILevel(RoomGridLevel):
         """Same palette as the target (no grey): no ball colour may hint at being the decoy."""
         return self._rand_elem([c for c in _SIGNPOST_COLORS if c != self.target_color])
 
-    def _add_balls(self) -> None:
-        """Target and decoy ball in room B."""
-        decoy_color = self._decoy_color()
-        self.target_ball, _ = self.add_object(self.room_b, 0, "ball", self.target_color)
-        self.decoy_ball, _ = self.add_object(self.room_b, 0, "ball", decoy_color)
+    def _add_balls_at_entry(self) -> None:
+        """Target and decoy on the two cells beside the first cell inside B's door."""
+        door_x, door_y = self.door_b.cur_pos
+        entry_x = door_x + (1 if self.room_b == _RIGHT_ROOM else -1)
+        self.target_ball, self.decoy_ball = Ball(self.target_color), Ball(self._decoy_color())
+        north_is_target = self._rand_bool()
+        north, south = (
+            (self.target_ball, self.decoy_ball)
+            if north_is_target
+            else (self.decoy_ball, self.target_ball)
+        )
+        self.put_obj(north, entry_x, door_y - 1)
+        self.put_obj(south, entry_x, door_y + 1)
+        self.get_room(self.room_b, 0).objs.extend((north, south))
+        self.instrs = self.BALL_INSTR(ObjDesc("ball", self.target_color))
 
     def _add_distractors(self, door_colors: set[str]) -> None:
         """``NUM_DISTRACTORS`` keys / boxes in random rooms; no key fits a locked door."""
@@ -415,22 +425,14 @@ def _blocks(env: BabyAILevel, pos: tuple[int, int]) -> bool:
 class GoToBallLevel(BabyAILevel):
     """Level 1, go-to-ball: look into A, go back across M to B, choose a ball at B's door.
 
-    Rooms 5x5 (3x3 inside). The agent starts in M facing A, whose door is open, so the
-    signpost is usually in view from the first step (in 89% of layouts; otherwise a step or a
-    turn brings it in). Door M-B is closed, not locked (``toggle`` opens it), in the middle of
-    B's wall, and the two balls flank the first cell inside it (north and south of it, which one
-    is the target at random): one step into B, a single turn faces one of them. Success: face
-    the target ball (``GoToInstr``). Failure (reward 0): face the decoy. No distractors.
-    Both doors are grey: no key must match them here, and random door colours spread the
-    signpost over 3.6 times as many distinct views, each rarer, which is what CI has to find
-    (on 600 known-answer episodes, 149 signpost codes of 557 cell-set codes against 41 of 118).
-    Scripted expert: 9 steps on average (at most 21 over 1500 seeds); limit 80 steps.
-
-    Why this layout (docs/babyai.md): with A closed and the balls anywhere in B, no method
-    learned to use the signpost in 5M steps: agents went to B without looking at A (the
-    signpost was seen in 14-52% of their episodes) and chose among balls over several
-    navigation steps. Here the cue comes first and the choice is one action, the shape of the
-    paper's maze (signposts near the entrance, the choice at the exit).
+    Rooms 5x5 (3x3 inside). Door M-A is open, so the signpost is usually in view from the first
+    step (in 89% of layouts; otherwise a step or a turn brings it in). Door M-B is closed, not
+    locked (``toggle`` opens it). One step into B, a single turn faces one of the balls.
+    Success: face the target ball (``GoToInstr``). Failure (reward 0): face the decoy. No
+    distractors. Both doors are grey: no key must match them here, and random door colours
+    spread the signpost over 3.6 times as many distinct views, each rarer, which is what CI has
+    to find (on 600 known-answer episodes, 149 signpost codes of 557 cell-set codes against 41
+    of 118). Scripted expert: 9 steps on average (at most 21 over 1500 seeds); limit 80 steps.
 
     ``info["causal"]``: the painted signpost cell of A's outer wall is drawn in the current
     7x7 observation (seen from M through the open door, or from inside A).
@@ -440,31 +442,12 @@ class GoToBallLevel(BabyAILevel):
     ROOM_SIZE = 5
     MAX_STEPS = 80
     MISSION = "go to the ball of the signpost's colour"
+    BALL_INSTR = _GoToBallInstr
 
-    def _populate(self) -> None:
-        # Grey doors: no key matches them here, and random door colours spread the signpost
-        # over 3.6 times as many distinct views (docstring).
+    def _add_doors(self) -> None:
         self.door_a = self._add_side_door(self.room_a, "grey", locked=False)
         self.door_b = self._add_side_door(self.room_b, "grey", locked=False, middle=True)
-        self._add_balls_at_entry()
         self.door_a.is_open = True
-        self.agent_dir = 2 if self.room_a == _LEFT_ROOM else 0  # facing A
-
-    def _add_balls_at_entry(self) -> None:
-        """Target and decoy on the two cells beside the first cell inside B's door."""
-        door_x, door_y = self.door_b.cur_pos
-        entry_x = door_x + (1 if self.room_b == _RIGHT_ROOM else -1)
-        self.target_ball, self.decoy_ball = Ball(self.target_color), Ball(self._decoy_color())
-        north_is_target = self._rand_bool()
-        north, south = (
-            (self.target_ball, self.decoy_ball)
-            if north_is_target
-            else (self.decoy_ball, self.target_ball)
-        )
-        self.put_obj(north, entry_x, door_y - 1)
-        self.put_obj(south, entry_x, door_y + 1)
-        self.get_room(self.room_b, 0).objs.extend((north, south))
-        self.instrs = _GoToBallInstr(ObjDesc("ball", self.target_color))
 
     def _expert_subgoal(self) -> _Subgoal:
         if not self.door_b.is_open:
@@ -473,12 +456,13 @@ class GoToBallLevel(BabyAILevel):
 
 
 class KeyToDoorLevel(BabyAILevel):
-    """Level 2, key-to-door: take the key and read the signpost in A, unlock B, go to the ball.
+    """Level 2, key-to-door: as level 1, but B's door is locked and its key lies in M.
 
-    Rooms 5x5. Door M-A closed, not locked; door M-B locked; its key lies in A. B holds the
-    target and the decoy ball. One distractor (a key of a colour no door has, or an empty box)
-    in a random room. Success: face the target ball. Failure: face the decoy.
-    Scripted expert: 25 steps on average (at most 35); limit 120 steps.
+    Rooms 5x5. Door M-A open, as in level 1; door M-B locked, its key in M. Door B and its key
+    are grey (no colour to match by sight, no extra variety of views; a carried key shows in
+    every view). One distractor in a random room: a key of a colour other than grey (it fits no
+    door) or a box. Success: face the target ball. Failure: face the decoy.
+    Scripted expert: {L2_MEAN} steps on average (at most {L2_MAX}); limit 120 steps.
 
     ``info["causal"]``: the signpost is drawn in the current observation (as in level 1).
     The key is needed too, but it stays visible while carried, so nothing about it has to be
@@ -490,15 +474,16 @@ class KeyToDoorLevel(BabyAILevel):
     MAX_STEPS = 120
     MISSION = "unlock the door and go to the ball of the signpost's colour"
     NUM_DISTRACTORS = 1
+    BALL_INSTR = _GoToBallInstr
 
-    def _populate(self) -> None:
-        key_color = self._rand_color()
-        self.door_a = self._add_side_door(self.room_a, self._rand_color(), locked=False)
-        self.door_b = self._add_side_door(self.room_b, key_color, locked=True)
-        self.key, _ = self.add_object(self.room_a, 0, "key", key_color)
-        self._add_balls()
-        self._add_distractors({key_color})
-        self.instrs = _GoToBallInstr(ObjDesc("ball", self.target_color))
+    def _add_doors(self) -> None:
+        self.door_a = self._add_side_door(self.room_a, "grey", locked=False)
+        self.door_b = self._add_side_door(self.room_b, "grey", locked=True, middle=True)
+        self.door_a.is_open = True
+
+    def _add_objects(self) -> None:
+        self.key, _ = self.add_object(_MIDDLE_ROOM, 0, "key", "grey")
+        self._add_distractors({"grey"})
 
     def _fetch_key(self) -> _Subgoal:
         return _face(self, self.key, PICKUP)
@@ -512,12 +497,13 @@ class KeyToDoorLevel(BabyAILevel):
 
 
 class KeyToBoxLevel(KeyToDoorLevel):
-    """Level 3, key-to-box: as level 2, but the key is hidden in a box (BabyAI's KeyInBox).
+    """Level 3, key-to-box: as level 2, but bigger rooms and B's key hidden in a box in A
+    (BabyAI's KeyInBox).
 
-    Rooms 6x6 (4x4 inside). In A, a box of a random colour holds B's key: ``toggle`` opens the
-    box, which leaves the key in its place. Two distractor keys (colours no door has) in
-    random rooms. Success: face the target ball. Failure: face the decoy.
-    Scripted expert: 31 steps on average (at most 48); limit 160 steps.
+    Rooms 6x6 (4x4 inside). In A, a grey box holds B's grey key: ``toggle`` opens the box,
+    which leaves the key in its place. Two distractor keys (colours other than grey: they fit
+    no door) in random rooms. Success: face the target ball. Failure: face the decoy.
+    Scripted expert: {L3_MEAN} steps on average (at most {L3_MAX}); limit 160 steps.
 
     ``info["causal"]``: the signpost is drawn in the current observation.
     """
@@ -530,16 +516,11 @@ class KeyToBoxLevel(KeyToDoorLevel):
     # Only keys: an empty distractor box would look like the one with the key.
     DISTRACTOR_KINDS = ("key",)
 
-    def _populate(self) -> None:
-        key_color = self._rand_color()
-        self.door_a = self._add_side_door(self.room_a, self._rand_color(), locked=False)
-        self.door_b = self._add_side_door(self.room_b, key_color, locked=True)
-        self.key = Key(key_color)
-        self.box = Box(self._rand_color(), contains=self.key)
+    def _add_objects(self) -> None:
+        self.key = Key("grey")
+        self.box = Box("grey", contains=self.key)
         self.place_in_room(self.room_a, 0, self.box)
-        self._add_balls()
-        self._add_distractors({key_color})
-        self.instrs = _GoToBallInstr(ObjDesc("ball", self.target_color))
+        self._add_distractors({"grey"})
 
     def _fetch_key(self) -> _Subgoal:
         if _locate(self, self.box) is not None:
@@ -551,14 +532,16 @@ class UnlockToUnlockLevel(BabyAILevel):
     """Level 4, unlock-to-unlock: minigrid's BabyAI-UnlockToUnlock-v0 plus signpost and decoy.
 
     Rooms 6x6, as in UnlockToUnlock. Door M-A locked (colour a), its key in M; door M-B
-    locked (colour b), its key in A (with the signpost). B holds the target and the decoy
-    ball. Three distractors (keys of neither door colour, or empty boxes) in random rooms.
-    The agent must drop a key to take another and have empty hands for the ball: take key a,
+    locked (colour b), its key in A (with the signpost); colours a and b at random, as in
+    UnlockToUnlock. Three distractors (keys of neither door colour, or boxes) in random rooms.
+    The agent faces A's locked door at reset, so here the signpost is seen only once A is
+    unlocked. It must drop a key to take another and have empty hands for the ball: take key a,
     unlock A, swap it for key b, go back through M, unlock B, drop key b, pick up the ball.
-    Success: pick up the target ball (``PickupInstr``). Failure: pick up the decoy.
-    Scripted expert: 42 steps on average (at most 66); limit 250 steps. Compared with
-    UnlockToUnlock (same rooms, same key chain, limit 1080 steps) it adds the detour to the
-    signpost, the choice between two balls, three distractors and a tighter limit.
+    Success: pick up the target ball (``PickupInstr``). Failure: pick up the decoy (facing it is
+    harmless here). Scripted expert: {L4_MEAN} steps on average (at most {L4_MAX}); limit 250
+    steps. Compared with UnlockToUnlock (same rooms, same key chain, limit 1080 steps) it adds
+    the detour to the signpost, the choice between two balls, three distractors and a tighter
+    limit.
 
     ``info["causal"]``: the signpost is drawn in the current observation.
     """
@@ -568,16 +551,17 @@ class UnlockToUnlockLevel(BabyAILevel):
     MAX_STEPS = 250
     MISSION = "unlock the doors and pick up the ball of the signpost's colour"
     NUM_DISTRACTORS = 3
+    BALL_INSTR = _PickupBallInstr
 
-    def _populate(self) -> None:
-        color_a, color_b = self._rand_subset(COLOR_NAMES, 2)
-        self.door_a = self._add_side_door(self.room_a, color_a, locked=True)
-        self.door_b = self._add_side_door(self.room_b, color_b, locked=True)
-        self.key_a, _ = self.add_object(_MIDDLE_ROOM, 0, "key", color_a)
-        self.key_b, _ = self.add_object(self.room_a, 0, "key", color_b)
-        self._add_balls()
-        self._add_distractors({color_a, color_b})
-        self.instrs = _PickupBallInstr(ObjDesc("ball", self.target_color))
+    def _add_doors(self) -> None:
+        self.color_a, self.color_b = self._rand_subset(COLOR_NAMES, 2)
+        self.door_a = self._add_side_door(self.room_a, self.color_a, locked=True)
+        self.door_b = self._add_side_door(self.room_b, self.color_b, locked=True, middle=True)
+
+    def _add_objects(self) -> None:
+        self.key_a, _ = self.add_object(_MIDDLE_ROOM, 0, "key", self.color_a)
+        self.key_b, _ = self.add_object(self.room_a, 0, "key", self.color_b)
+        self._add_distractors({self.color_a, self.color_b})
 
     def _expert_subgoal(self) -> _Subgoal:
         for door, key in ((self.door_a, self.key_a), (self.door_b, self.key_b)):
