@@ -672,6 +672,20 @@ def test_the_other_value_of_a_cause_is_admitted_back(search, prefer):
     assert without.causal.tolist() == [prefer]
 
 
+@pytest.mark.parametrize("search", [hci, lambda e, **k: t_hci(e, z=2, **k)])
+def test_a_cause_kept_from_an_earlier_round_gets_no_substitutes_where_it_has_no_effect(search):
+    # code 0 comes confirmed from an earlier round (keep) but has no effect on this pool, so
+    # code 1, exclusive of it, says nothing about it: masking 0 without 1 shows no effect only
+    # because 0 has none at all
+    episodes = {0: set(range(50)), 1: set(range(50, 100)), 2: set(range(100))}
+    table = _TableEstimator({c: (-0.01, 0.01) for c in range(3)}, episodes)
+    result = search(table, keep=np.array([0]))
+    assert result.causal.tolist() == [0]  # kept untested, as keep promises
+    assert sorted(result.eliminated.tolist()) == [1, 2]
+    kinds = [r.kind for r in result.interventions]
+    assert "substitute" not in kinds and kinds.count("cause-check") == 1
+
+
 def test_a_substitute_needs_support():
     # code 1 stands in for code 0 but lies in 5 held-out episodes only: its test would be noise
     exclusive = _ComplementEstimator({**_EXCLUSIVE_EPISODES, 1: set(range(50, 55))})
