@@ -334,6 +334,22 @@ def test_gate_reproduces_eliminated_set_and_decides_unseen_observations():
     assert gate.keep(unseen).shape == (5,)
 
 
+def test_gate_fitted_on_minibatches_reproduces_the_set_and_is_deterministic():
+    # |Ô| above batch_size: each step sees a random minibatch, the stop rule all of Ô
+    observations = torch.eye(40)
+    eliminated = torch.arange(40) % 3 != 0
+    gates = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        gate = Gate(40)
+        fit = gate.fit(observations, eliminated, batch_size=8)
+        assert fit.accuracy == 1.0 and fit.steps < 3000
+        gates.append(gate)
+    assert torch.equal(gates[0].keep(observations), ~eliminated)
+    for a, b in zip(gates[0].parameters(), gates[1].parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
 def test_cell_set_gate_is_a_function_of_the_set_of_cells():
     torch.manual_seed(0)
     gate = GateSpec(3 * 4 + 2, [5] * 12 + [2, 2], cell_layout=(0, 4, 3)).build()

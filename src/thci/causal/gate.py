@@ -138,6 +138,7 @@ class Gate(nn.Module):
         eliminated: torch.Tensor,
         max_steps: int = 3000,
         learning_rate: float = 1e-2,
+        batch_size: int = 512,
     ) -> GateFit:
         """Fit Eq. 10 on Ô and activate the gate.
 
@@ -147,11 +148,19 @@ class Gate(nn.Module):
         right). The fit therefore minimizes the log-loss, whose minimizer on Ô is the same
         membership, and reports Eq. 10's loss.
 
+        Up to `batch_size` observations every step takes all of them; beyond, a random
+        minibatch of `batch_size` (seeded, so the same inputs give the same gate). Full batches
+        of BabyAI-L2's 2,384 cell-set codes took 0.16 s a step and 488 s of a 594 s CI round
+        (3000 steps, cProfile); minibatches of 512 took 0.03 s a step and left 9 codes wrong
+        after 3000 steps, against 7 for full batches after 1000 (155 s).
+
         Args:
             observations: (|Ô|, D), one representative observation per observed code.
             eliminated: (|Ô|,) bool, I(o ∈ O^w).
         """
         target = eliminated.float()
+        minibatches = len(observations) > batch_size
+        generator = torch.Generator().manual_seed(0)
         # torch's Adam, bit for bit; constructing a torch.optim optimizer imports
         # torch._dynamo (~1.8 s), and this fit is all that would need it in the CI worker,
         # which the RL loop waits for when the first round comes before it is up.
@@ -159,15 +168,22 @@ class Gate(nn.Module):
         step = 0
         with torch.enable_grad():
             for step in range(1, max_steps + 1):
-                logits = self.net(observations).squeeze(-1)
-                prob = torch.sigmoid(logits)
-                loss = nn.functional.binary_cross_entropy_with_logits(logits, target)
+                if minibatches:
+                    rows = torch.randint(len(observations), (batch_size,), generator=generator)
+                    inputs, labels = observations[rows], target[rows]
+                else:
+                    inputs, labels = observations, target
+                logits = self.net(inputs).squeeze(-1)
+                loss = nn.functional.binary_cross_entropy_with_logits(logits, labels)
                 optimizer.zero_grad()
                 loss.backward()
                 optimizer.step()
-                # Stop once every decision is right with a margin.
-                if step % 50 == 0 and bool(((prob - target).abs() < 0.25).all()):
-                    break
+                # Stop once every decision is right with a margin (on all of Ô).
+                if step % 50 == 0:
+                    with torch.no_grad():
+                        all_logits = self.net(observations).squeeze(-1) if minibatches else logits
+                    if bool(((torch.sigmoid(all_logits) - target).abs() < 0.25).all()):
+                        break
         self.active.fill_(True)
         with torch.no_grad():
             prob = self(observations)
