@@ -702,6 +702,30 @@ def test_a_cause_kept_from_an_earlier_round_gets_no_substitutes_where_it_has_no_
     assert "substitute" not in kinds and kinds.count("cause-check") == 1
 
 
+class _OneSubstituteEstimator(_TableEstimator):
+    """Code 0 has an effect unless code 37 is visible; 64 codes exclusive of 0 (37 among
+    them), code 65 in every episode."""
+
+    def __init__(self) -> None:
+        episodes = {0: set(range(50)), 65: set(range(100))}
+        episodes.update({c: set(range(50, 100)) for c in range(1, 65)})
+        super().__init__({c: (-0.01, 0.01) for c in range(66)}, episodes)
+
+    def ate(self, interventions, eliminated):
+        both = [{0, 37} <= {*i.codes.tolist(), *eliminated.tolist()} for i in interventions]
+        lower, upper = np.where(both, 0.3, -0.01), np.where(both, 0.5, 0.01)
+        return EffectEstimate((lower + upper) / 2, lower, upper)
+
+
+@pytest.mark.parametrize("search", [hci, lambda e, **k: t_hci(e, z=2, **k)])
+def test_substitutes_are_found_by_group_tests(search):
+    result = search(_OneSubstituteEstimator(), keep=np.array([0]))
+    assert result.causal.tolist() == [0, 37]
+    substitute_tests = [r for r in result.interventions if r.kind == "substitute"]
+    # one test clears each half without 37; 64 candidates, one at a time, took 64 tests
+    assert len(substitute_tests) <= 1 + 2 * 6
+
+
 def test_a_substitute_needs_support():
     # code 1 stands in for code 0 but lies in 5 held-out episodes only: its test would be noise
     exclusive = _ComplementEstimator({**_EXCLUSIVE_EPISODES, 1: set(range(50, 55))})

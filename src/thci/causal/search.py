@@ -285,7 +285,7 @@ class _Search:
         Each candidate is tested against the search's own O^w (not one with earlier admissions
         removed), so an unrelated code exclusive of k is not admitted because some other
         substitute already tells k. Candidates are found from the held-out episodes'
-        (episode, code) pairs; each costs one batched pass (its partners side by side)."""
+        (episode, code) pairs and tested in groups per cause (:meth:`_substitutes_of`)."""
         causes = np.setdiff1d(self.confirmed, self.eliminated)
         if len(causes) == 0 or len(self.eliminated) == 0:
             return
@@ -313,17 +313,29 @@ class _Search:
         checked = causes[with_partners]
         _, confirmed_now, _ = self._run([np.array([k]) for k in checked], "cause-check")
         exclusive[with_partners] &= torch.as_tensor(confirmed_now).unsqueeze(1)
-        admitted = []
-        for j, c in enumerate(candidates.tolist()):
-            partners = causes[exclusive[:, j].numpy()]
-            if len(partners) == 0:
-                continue
-            given = eliminated[eliminated != c]  # c visible
-            effect, _, _ = self._run([np.array([k]) for k in partners], "substitute", given)
-            if not effect.all():
-                admitted.append(c)
-        self.eliminated = np.setdiff1d(eliminated, admitted)
-        self.confirmed = np.union1d(self.confirmed, admitted).astype(np.int64)
+        admitted: set[int] = set()
+        for i, cause in enumerate(causes.tolist()):
+            admitted.update(self._substitutes_of(cause, candidates[exclusive[i].numpy()]))
+        self.eliminated = np.setdiff1d(eliminated, sorted(admitted))
+        self.confirmed = np.union1d(self.confirmed, sorted(admitted)).astype(np.int64)
+
+    def _substitutes_of(self, cause: int, group: np.ndarray) -> list[int]:
+        """The codes of `group` each of which, visible on its own, takes away the effect of
+        `cause`: ATE(cause | O^w without c) has none. Group testing, one pass per test: when
+        the cause keeps an effect with the whole group visible, it keeps one with any single
+        code of it visible (the ATE is monotone in the masked set), so one test clears the
+        group; otherwise the group is halved. Testing each candidate on its own took 195-982
+        substitute tests a round (a pass each) on BabyAI-L1 pools that admitted almost none."""
+        if len(group) == 0:
+            return []
+        masked = np.setdiff1d(self.eliminated, group)  # O^w with the group visible
+        effect, _, _ = self._run([np.array([cause])], "substitute", masked)
+        if effect[0]:
+            return []
+        if len(group) == 1:
+            return [int(group[0])]
+        half = len(group) // 2
+        return self._substitutes_of(cause, group[:half]) + self._substitutes_of(cause, group[half:])
 
     def _union_has_effect(self, parts: list[np.ndarray]) -> bool:
         """Whether masking all `parts` together (with O^w) may have an effect."""
