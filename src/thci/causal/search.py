@@ -306,7 +306,7 @@ class _Search:
         # kept from an earlier round (`keep`) was confirmed on another pool and may be redundant
         # on this one; then every code exclusive of it passed the test below, joined `keep`
         # and brought its own exclusive codes in the next round (BabyAI-L1, A2C: 143-1262
-        # substitute tests a round, 100-130 s, the kept set growing to 129 of 208 codes).
+        # substitute tests in rounds 4-8, the kept set growing to 129 of 208 codes).
         with_partners = exclusive.any(dim=1).numpy()
         if not with_partners.any():
             return

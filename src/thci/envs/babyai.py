@@ -258,6 +258,13 @@ class BabyAILevel(RoomGridLevel):
         door, _ = self.add_door(side, 0, door_idx=door_idx, color=color, locked=locked)
         return door
 
+    def _add_grey_doors(self, b_locked: bool) -> None:
+        """Levels 1-3: A's door grey and open (the signpost is in view through it), B's grey
+        in the middle of its wall, locked or only closed."""
+        self.door_a = self._add_side_door(self.room_a, "grey", locked=False)
+        self.door_b = self._add_side_door(self.room_b, "grey", locked=b_locked, middle=True)
+        self.door_a.is_open = True
+
     def _decoy_color(self) -> str:
         """Same palette as the target (no grey): no ball colour may hint at being the decoy."""
         return self._rand_elem([c for c in _SIGNPOST_COLORS if c != self.target_color])
@@ -445,9 +452,7 @@ class GoToBallLevel(BabyAILevel):
     BALL_INSTR = _GoToBallInstr
 
     def _add_doors(self) -> None:
-        self.door_a = self._add_side_door(self.room_a, "grey", locked=False)
-        self.door_b = self._add_side_door(self.room_b, "grey", locked=False, middle=True)
-        self.door_a.is_open = True
+        self._add_grey_doors(b_locked=False)
 
     def _expert_subgoal(self) -> _Subgoal:
         if not self.door_b.is_open:
@@ -462,7 +467,7 @@ class KeyToDoorLevel(BabyAILevel):
     are grey (no colour to match by sight, no extra variety of views; a carried key shows in
     every view). One distractor in a random room: a key of a colour other than grey (it fits no
     door) or a box. Success: face the target ball. Failure: face the decoy.
-    Scripted expert: {L2_MEAN} steps on average (at most {L2_MAX}); limit 120 steps.
+    Scripted expert: 12.4 steps on average (at most 26 over 1500 seeds); limit 120 steps.
 
     ``info["causal"]``: the signpost is drawn in the current observation (as in level 1).
     The key is needed too, but it stays visible while carried, so nothing about it has to be
@@ -477,9 +482,7 @@ class KeyToDoorLevel(BabyAILevel):
     BALL_INSTR = _GoToBallInstr
 
     def _add_doors(self) -> None:
-        self.door_a = self._add_side_door(self.room_a, "grey", locked=False)
-        self.door_b = self._add_side_door(self.room_b, "grey", locked=True, middle=True)
-        self.door_a.is_open = True
+        self._add_grey_doors(b_locked=True)
 
     def _add_objects(self) -> None:
         self.key, _ = self.add_object(_MIDDLE_ROOM, 0, "key", "grey")
@@ -503,7 +506,7 @@ class KeyToBoxLevel(KeyToDoorLevel):
     Rooms 6x6 (4x4 inside). In A, a grey box holds B's grey key: ``toggle`` opens the box,
     which leaves the key in its place. Two distractor keys (colours other than grey: they fit
     no door) in random rooms. Success: face the target ball. Failure: face the decoy.
-    Scripted expert: {L3_MEAN} steps on average (at most {L3_MAX}); limit 160 steps.
+    Scripted expert: 27.1 steps on average (at most 42); limit 160 steps.
 
     ``info["causal"]``: the signpost is drawn in the current observation.
     """
@@ -538,7 +541,7 @@ class UnlockToUnlockLevel(BabyAILevel):
     unlocked. It must drop a key to take another and have empty hands for the ball: take key a,
     unlock A, swap it for key b, go back through M, unlock B, drop key b, pick up the ball.
     Success: pick up the target ball (``PickupInstr``). Failure: pick up the decoy (facing it is
-    harmless here). Scripted expert: {L4_MEAN} steps on average (at most {L4_MAX}); limit 250
+    harmless here). Scripted expert: 39.5 steps on average (at most 63); limit 250
     steps. Compared with UnlockToUnlock (same rooms, same key chain, limit 1080 steps) it adds
     the detour to the signpost, the choice between two balls, three distractors and a tighter
     limit.
