@@ -88,6 +88,52 @@ def test_dmc_regresses_q_of_taken_actions_on_whole_episode_returns():
     assert losses["q_loss"] == pytest.approx(0.5 * (taken - returns).pow(2).mean().item(), rel=1e-5)
 
 
+def _one_step_episodes(rewards: list[float], first: int = 0) -> Rollout:
+    """A rollout of len(rewards) one-step episodes in one environment; each episode's
+    observation holds its number (first, first + 1, ...)."""
+    T = len(rewards)
+    numbers = torch.arange(first, first + T, dtype=torch.float32)
+    obs = numbers.view(T, 1, 1).expand(T, 1, 3).contiguous()
+    actions = torch.zeros(T, 1, dtype=torch.long)
+    dones = torch.ones(T, 1, dtype=torch.bool)
+    return _rollout(obs, actions, torch.tensor(rewards).view(T, 1), dones)
+
+
+def test_dmc_buffer_keeps_the_last_episodes_and_restores():
+    config = TrainConfig(dmc_buffer_episodes=3)
+    dmc = DMC(config, num_envs=1)
+    assert dmc.add(_one_step_episodes([1.0, 2.0])) == 2
+    assert dmc.add(_one_step_episodes([3.0, 4.0])) == 2
+    # FIFO of 3: the first episode (return 1) was evicted
+    assert [e["returns"].tolist() for e in dmc.buffer] == [[2.0], [3.0], [4.0]]
+    restored = DMC(config, num_envs=1)
+    restored.load_state_dict(dmc.state_dict())
+    assert [e["returns"].tolist() for e in restored.buffer] == [[2.0], [3.0], [4.0]]
+
+
+def test_dmc_steps_on_distinct_buffered_episodes():
+    agent = _agent()
+    config = TrainConfig(update_epochs=2, num_minibatches=3, dmc_batch_episodes=4)
+    dmc = DMC(config, num_envs=1)
+    dmc.add(_one_step_episodes([0.0, 1.0, 2.0, 3.0, 4.0]))  # a first rollout's episodes
+    seen: list[list[float]] = []
+    evaluate = agent.evaluate
+
+    def recording(inputs: torch.Tensor, state: torch.Tensor):
+        seen.append(inputs[:, 0, 0].tolist())  # each episode's obs holds its index
+        return evaluate(inputs, state)
+
+    agent.evaluate = recording
+    optimizer = torch.optim.SGD(agent.parameters(), lr=0.0)
+    dmc.update(agent, optimizer, _one_step_episodes([5.0, 6.0], first=5))
+    assert len(seen) == 2 * 3  # update_epochs x num_minibatches gradient steps
+    for batch in seen:
+        assert len(batch) == len(set(batch)) == 4  # without replacement
+    # the batches come from the whole buffer: an earlier rollout's episodes and the new ones
+    drawn = set().union(*map(set, seen))
+    assert drawn <= set(range(7)) and drawn & {0, 1, 2, 3, 4} and drawn & {5, 6}
+
+
 def test_a2c_takes_one_policy_gradient_step_on_the_whole_rollout():
     agent = _agent()
     config = TrainConfig(gamma=0.9, gae_lambda=1.0, norm_adv=False, ent_coef=0.0, vf_coef=0.0)

@@ -113,6 +113,10 @@ class TrainConfig:
     """DMC's epsilon at the first step; it falls linearly to --dmc-epsilon (as in DQN)."""
     dmc_epsilon_decay: int = 50_000
     """Env steps over which DMC's epsilon falls from --dmc-epsilon-start to --dmc-epsilon."""
+    dmc_buffer_episodes: int = 256
+    """DMC keeps the last this many finished episodes (FIFO) to draw its minibatches from."""
+    dmc_batch_episodes: int = 32
+    """Episodes per DMC gradient step; update_epochs × num_minibatches steps per rollout."""
     clip_coef: float = 0.2
     ent_coef: float = 0.01
     vf_coef: float = 0.5
@@ -336,6 +340,9 @@ class TrainConfig:
         for name in ("dmc_epsilon", "dmc_epsilon_start"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ThciError(f"--{_flag(name)} must be in [0, 1], got {getattr(self, name)}")
+        for name in ("dmc_buffer_episodes", "dmc_batch_episodes"):
+            if getattr(self, name) < 1:
+                raise ThciError(f"--{_flag(name)} must be >= 1, got {getattr(self, name)}")
         if self.dmc_epsilon_decay < 0:
             raise ThciError(f"--dmc-epsilon-decay must be >= 0, got {self.dmc_epsilon_decay}")
         if self.method == "sai" and self.encoder_size % 4:
