@@ -69,7 +69,7 @@ def _agent() -> ActorCritic:
 
 def test_dmc_regresses_q_of_taken_actions_on_whole_episode_returns():
     agent = _agent()
-    config = TrainConfig(gamma=0.5, update_epochs=1, num_minibatches=1, max_grad_norm=1e9)
+    config = TrainConfig(gamma=0.5, dmc_gradient_steps=1, max_grad_norm=1e9)
     dmc = DMC(config, num_envs=1)
     obs = torch.randn(4, 1, 3)
     actions = torch.tensor([[1], [0], [1], [1]])
@@ -113,7 +113,7 @@ def test_dmc_buffer_keeps_the_last_episodes_and_restores():
 
 def test_dmc_steps_on_distinct_buffered_episodes():
     agent = _agent()
-    config = TrainConfig(update_epochs=2, num_minibatches=3, dmc_batch_episodes=4)
+    config = TrainConfig(dmc_gradient_steps=6, dmc_batch_episodes=4)
     dmc = DMC(config, num_envs=1)
     dmc.add(_one_step_episodes([0.0, 1.0, 2.0, 3.0, 4.0]))  # a first rollout's episodes
     seen: list[list[float]] = []
@@ -126,7 +126,7 @@ def test_dmc_steps_on_distinct_buffered_episodes():
     agent.evaluate = recording
     optimizer = torch.optim.SGD(agent.parameters(), lr=0.0)
     dmc.update(agent, optimizer, _one_step_episodes([5.0, 6.0], first=5))
-    assert len(seen) == 2 * 3  # update_epochs x num_minibatches gradient steps
+    assert len(seen) == 6  # --dmc-gradient-steps
     for batch in seen:
         assert len(batch) == len(set(batch)) == 4  # without replacement
     # the batches come from the whole buffer: an earlier rollout's episodes and the new ones

@@ -104,7 +104,7 @@ class TrainConfig:
     gamma: float = 0.99
     gae_lambda: float = 0.95
     update_epochs: int = 8
-    """Epochs per rollout (PPO, DMC; A2C takes one step)."""
+    """Epochs per rollout (PPO; A2C takes one step; DMC: --dmc-gradient-steps)."""
     num_minibatches: int = 8
     """Minibatches per epoch; each holds whole episode segments, never cut sequences."""
     dmc_epsilon: float = 0.1
@@ -116,7 +116,9 @@ class TrainConfig:
     dmc_buffer_episodes: int = 256
     """DMC keeps the last this many finished episodes (FIFO) to draw its minibatches from."""
     dmc_batch_episodes: int = 32
-    """Episodes per DMC gradient step; update_epochs × num_minibatches steps per rollout."""
+    """Episodes per DMC gradient step, drawn from the buffer without replacement."""
+    dmc_gradient_steps: int = 8
+    """DMC's gradient steps per rollout."""
     clip_coef: float = 0.2
     ent_coef: float = 0.01
     vf_coef: float = 0.5
@@ -340,7 +342,7 @@ class TrainConfig:
         for name in ("dmc_epsilon", "dmc_epsilon_start"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ThciError(f"--{_flag(name)} must be in [0, 1], got {getattr(self, name)}")
-        for name in ("dmc_buffer_episodes", "dmc_batch_episodes"):
+        for name in ("dmc_buffer_episodes", "dmc_batch_episodes", "dmc_gradient_steps"):
             if getattr(self, name) < 1:
                 raise ThciError(f"--{_flag(name)} must be >= 1, got {getattr(self, name)}")
         if self.dmc_epsilon_decay < 0:

@@ -6,20 +6,22 @@ head is unused); the collector acts epsilon-greedily on it (``--dmc-epsilon``) a
 truncation bootstrap. The episodes that *finished* in a rollout — whole, however many rollouts
 they spanned (:class:`thci.rl.episodes.EpisodeAssembler`) — join a FIFO buffer of the last
 ``--dmc-buffer-episodes`` episodes with their returns, as DouZero's learner samples the episodes
-its actors leave in shared buffers. Each update takes ``update_epochs × num_minibatches``
-gradient steps, each on ``--dmc-batch-episodes`` episodes drawn from the buffer without
-replacement, runs the memory over each from its first step and a zero state, and minimizes
+its actors leave in shared buffers. Each update takes ``--dmc-gradient-steps`` gradient
+steps, each on ``--dmc-batch-episodes`` episodes drawn from the buffer without replacement,
+runs the memory over each from its first step and a zero state, and minimizes
 
     L = mean over steps of ½ (Q(h_t, a_t) − G_t)²,   G_t = Σ_{k≥0} γ^k r_{t+k},
 
 the return to the episode's end (intrinsic rewards included when exploration adds them).
 
 Why a buffer: regressing on only the ~25 episodes of one rollout (BabyAI-L1, 16 envs × 128
-steps), Q's mean swung by ±0.5 from one update to the next while the returns averaged 0.4; the
-greedy policy turned in place and success fell from random play's 0.06 to 0 (mlp memory, 150k
-steps). Fitted offline on 96 such episodes, the same network ranked the actions as their
-returns do. With a 256-episode buffer, success rose to the memoryless optimum (0.45) within
-75k steps (docs/babyai.md, "DMC with an episode buffer").
+steps), Q overrated whatever the greedy action was (returns ×100 in that diagnostic: `right`
+rated 1.18 against its mean return 0.38, while `forward` returned 1.11), the greedy policy
+turned in place and success fell from random play's 0.06 to 0 (mlp memory, 150k steps; lower
+learning rates, Adam's eps, dueling heads, epsilon and gamma changed nothing). Fitted offline
+on 96 such episodes, the same network ranked the actions as their returns do (forward 1.10,
+the others 0.38-0.41). With a 256-episode buffer, success rose to the memoryless optimum
+(0.45) within 75k steps (docs/babyai.md, "DMC with an episode buffer").
 
 Epsilon starts at ``--dmc-epsilon-start`` (1: uniformly random) and falls linearly to
 ``--dmc-epsilon`` over ``--dmc-epsilon-decay`` env steps (:func:`epsilon_at`), as in DQN. A
@@ -75,8 +77,8 @@ class DMC:
     """Monte-Carlo Q regression on whole episodes for a recurrent :class:`ActorCritic`.
 
     Args:
-        config: update_epochs × num_minibatches gradient steps per update, each on
-            dmc_batch_episodes episodes of the dmc_buffer_episodes kept; gamma, max_grad_norm.
+        config: dmc_gradient_steps per update, each on dmc_batch_episodes episodes of the
+            dmc_buffer_episodes kept; gamma, max_grad_norm.
         num_envs: N, the rollouts' width.
     """
 
@@ -117,7 +119,7 @@ class DMC:
             return {"q_loss": float("nan"), "q_mean": float("nan")}
         batch_size = min(cfg.dmc_batch_episodes, len(self.buffer))
         losses, q_means = [], []
-        for _ in range(cfg.update_epochs * cfg.num_minibatches):
+        for _ in range(cfg.dmc_gradient_steps):
             which = torch.randperm(len(self.buffer))[:batch_size].tolist()
             batch = [self.buffer[i] for i in which]
             obs, valid = _padded([e["obs"] for e in batch])
