@@ -117,8 +117,9 @@ class TrainConfig:
     """DMC keeps the last this many finished episodes (FIFO) to draw its minibatches from."""
     dmc_batch_episodes: int = 32
     """Episodes per DMC gradient step, drawn from the buffer without replacement."""
-    dmc_gradient_steps: int = 8
-    """DMC's gradient steps per rollout."""
+    dmc_gradient_steps: int = 16
+    """DMC's gradient steps per rollout (on BabyAI-L1, 4 stayed at random play for 125k steps;
+    16 reached the memoryless optimum by 125k)."""
     clip_coef: float = 0.2
     ent_coef: float = 0.01
     vf_coef: float = 0.5
