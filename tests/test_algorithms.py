@@ -119,9 +119,9 @@ def test_dmc_steps_on_distinct_buffered_episodes():
     seen: list[list[float]] = []
     evaluate = agent.evaluate
 
-    def recording(inputs: torch.Tensor, state: torch.Tensor):
-        seen.append(inputs[:, 0, 0].tolist())  # each episode's obs holds its index
-        return evaluate(inputs, state)
+    def recording(inputs: torch.Tensor, state: torch.Tensor, valid: torch.Tensor):
+        seen.append(inputs[:, 0, 0].tolist())  # each episode's obs holds its number
+        return evaluate(inputs, state, valid)
 
     agent.evaluate = recording
     optimizer = torch.optim.SGD(agent.parameters(), lr=0.0)

@@ -162,3 +162,28 @@ def test_cell_encoder_refuses_a_layout_beyond_the_observation_or_too_many_values
         CellEncoder(151, (0, 49, 3), [50] * 151, 8)
     with pytest.raises(ThciError, match="square"):
         GridEncoder(151, (0, 50, 3), [3] * 151, 8)
+
+
+@pytest.mark.parametrize("method", ["lstm", "t-hci", "wmg", "sai"])
+def test_padding_skips_the_encoder_and_leaves_the_real_steps_unchanged(method):
+    config = TrainConfig(env="thci/BabyAI-L1-v0", num_envs=2, encoder="cells", method=method)
+    envs = make_vector_env(config.env, 2)
+    agent = build_agent(config, envs)
+    obs, _ = envs.reset(seed=0)
+    steps = [obs]
+    for _ in range(5):
+        obs, *_ = envs.step(np.array([2, 1]))
+        steps.append(obs)
+    envs.close()
+    inputs = torch.as_tensor(np.stack(steps, axis=1), dtype=torch.float32)  # (2, 6, D)
+    side = torch.zeros(2, 6, agent.input_size - agent.observation_size)
+    inputs = torch.cat((inputs, side), dim=-1)
+    valid = torch.tensor([[True] * 6, [True] * 3 + [False] * 3])  # row 1: 3 steps, padded
+    inputs[1, 3:] = 0.0
+    calls = []
+    agent.encoder.register_forward_hook(lambda _m, args, _out: calls.append(args[0].shape[0]))
+    full_logits, full_values = agent.evaluate(inputs, agent.initial_state(2))
+    logits, values = agent.evaluate(inputs, agent.initial_state(2), valid)
+    assert calls[-1] == 9  # the encoder ran on the 9 real steps only
+    assert torch.allclose(logits[valid], full_logits[valid], atol=1e-6)
+    assert torch.allclose(values[valid], full_values[valid], atol=1e-6)

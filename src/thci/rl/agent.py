@@ -52,6 +52,7 @@ class ActorCritic(nn.Module):
         super().__init__()
         self.gate = gate
         self.observation_size = observation_size
+        self.encoder_size = encoder_size
         if categories is not None and len(categories) != observation_size:
             raise ValueError(f"{len(categories)} categories for {observation_size} dimensions")
         first = make_encoder(encoder, observation_size, categories, cell_layout, encoder_size)
@@ -86,11 +87,19 @@ class ActorCritic(nn.Module):
         """D_obs + the memory's side inputs: the width of what :meth:`forward` takes per step."""
         return self.observation_size + self.memory.side_size
 
-    def memory_input(self, inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def memory_input(
+        self, inputs: torch.Tensor, valid: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The memory's input (..., D + side) and the encoder's features (..., E) of agent
-        inputs (..., D_obs + side)."""
+        inputs (..., D_obs + side). With `valid` (the leading dims' bool mask of real steps),
+        padding steps get zero features and cost no encoder time (the cells encoder is most of
+        a training pass on BabyAI)."""
         obs = inputs[..., : self.observation_size]
-        features = self.encoder(obs)
+        if valid is None or bool(valid.all()):
+            features = self.encoder(obs)
+        else:
+            features = obs.new_zeros(*obs.shape[:-1], self.encoder_size)
+            features[valid] = self.encoder(obs[valid])
         side = inputs[..., self.observation_size :]
         own = obs if self.memory.reads_observation else features
         return torch.cat((own, side), dim=-1), features
@@ -112,18 +121,19 @@ class ActorCritic(nn.Module):
         return *self._heads(out, features), state
 
     def evaluate(
-        self, inputs: torch.Tensor, state: torch.Tensor
+        self, inputs: torch.Tensor, state: torch.Tensor, valid: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`forward` without the final state, for training passes: logits (B, L, A) and
-        values (B, L)."""
-        memory_input, features, keep = self._memory_args(inputs)
+        values (B, L). `valid` (B, L): the real steps of right-padded sequences; the outputs at
+        the others are meaningless (padding skips the encoder)."""
+        memory_input, features, keep = self._memory_args(inputs, valid)
         return self._heads(self.memory.outputs(memory_input, state, keep), features)
 
     def _memory_args(
-        self, inputs: torch.Tensor
+        self, inputs: torch.Tensor, valid: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """The memory's input, the encoder's features and the gate's keep mask (B, L)."""
-        memory_input, features = self.memory_input(inputs)
+        memory_input, features = self.memory_input(inputs, valid)
         obs = inputs[..., : self.observation_size]
         return memory_input, features, None if self.gate is None else self.gate.keep(obs)
 

@@ -125,7 +125,7 @@ class DMC:
             obs, valid = _padded([e["obs"] for e in batch])
             actions, _ = _padded([e["actions"] for e in batch])
             returns, _ = _padded([e["returns"] for e in batch])
-            q_values, _ = agent.evaluate(obs, agent.initial_state(batch_size))
+            q_values, _ = agent.evaluate(obs, agent.initial_state(batch_size), valid)
             q = q_values.gather(-1, actions.unsqueeze(-1)).squeeze(-1)[valid]
             loss = 0.5 * (q - returns[valid]).pow(2).mean()
             if not torch.isfinite(loss):

@@ -93,8 +93,8 @@ class PPO:
                     rollout.initial_state[batch.column],
                     agent.initial_state(len(batch.column)),
                 )
-                logits, values = agent.evaluate(batch.gather(inputs), state)
                 mask = batch.valid
+                logits, values = agent.evaluate(batch.gather(inputs), state, mask)
                 dist = torch.distributions.Categorical(logits=logits[mask])
                 logprob = dist.log_prob(batch.gather(rollout.actions)[mask])
                 adv = batch.gather(advantages)[mask]
