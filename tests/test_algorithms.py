@@ -111,6 +111,19 @@ def test_dmc_buffer_keeps_the_last_episodes_and_restores():
     assert [e["returns"].tolist() for e in restored.buffer] == [[2.0], [3.0], [4.0]]
 
 
+def test_dmc_buffer_copies_episodes_out_of_the_rollout():
+    dmc = DMC(TrainConfig(), num_envs=2)
+    T, N = 4, 2
+    dones = torch.zeros(T, N, dtype=torch.bool)
+    dones[1] = True  # each environment's first episode ends with step 1
+    obs = torch.randn(T, N, 3)
+    dmc.add(_rollout(obs, torch.zeros(T, N, dtype=torch.long), torch.zeros(T, N), dones))
+    for n, episode in enumerate(dmc.buffer):
+        assert torch.equal(episode["obs"], obs[:2, n])
+        # its own storage: a view into the (T, N, D) rollout would keep (and checkpoint) it all
+        assert episode["obs"].untyped_storage().nbytes() == episode["obs"].nbytes
+
+
 def test_dmc_steps_on_distinct_buffered_episodes():
     agent = _agent()
     config = TrainConfig(dmc_gradient_steps=6, dmc_batch_episodes=4)

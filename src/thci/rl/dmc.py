@@ -100,10 +100,11 @@ class DMC:
             rewards, valid = _padded([torch.as_tensor(e["rewards"]) for e in episodes])
             returns = monte_carlo_returns(rewards, valid, self.config.gamma)
             for episode, episode_returns, mask in zip(episodes, returns, valid, strict=True):
+                # Copies: a view would pin (and checkpoint) its whole rollout.
                 self.buffer.append(
                     {
-                        "obs": torch.as_tensor(episode["obs"]),
-                        "actions": torch.as_tensor(episode["actions"]),
+                        "obs": torch.tensor(episode["obs"]),
+                        "actions": torch.tensor(episode["actions"]),
                         "returns": episode_returns[mask],
                     }
                 )
