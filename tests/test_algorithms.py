@@ -126,7 +126,7 @@ def test_dmc_buffer_copies_episodes_out_of_the_rollout():
 
 def test_dmc_steps_on_distinct_buffered_episodes():
     agent = _agent()
-    config = TrainConfig(dmc_gradient_steps=6, dmc_batch_episodes=4)
+    config = TrainConfig(dmc_gradient_steps=6, dmc_batch_episodes=4, dmc_refit_steps=3)
     dmc = DMC(config, num_envs=1)
     dmc.add(_one_step_episodes([0.0, 1.0, 2.0, 3.0, 4.0]))  # a first rollout's episodes
     seen: list[list[float]] = []
@@ -145,6 +145,8 @@ def test_dmc_steps_on_distinct_buffered_episodes():
     # the batches come from the whole buffer: an earlier rollout's episodes and the new ones
     drawn = set().union(*map(set, seen))
     assert drawn <= set(range(7)) and drawn & {0, 1, 2, 3, 4} and drawn & {5, 6}
+    dmc.refit(agent, optimizer)  # after a new gate: steps on the buffer, no new episodes
+    assert len(seen) == 6 + 3 and len(dmc.buffer) == 7
 
 
 def test_a2c_takes_one_policy_gradient_step_on_the_whole_rollout():

@@ -117,6 +117,10 @@ class TrainConfig:
     """DMC keeps the last this many finished episodes (FIFO) to draw its minibatches from."""
     dmc_batch_episodes: int = 32
     """Episodes per DMC gradient step, drawn from the buffer without replacement."""
+    dmc_refit_steps: int = 200
+    """Gradient steps DMC takes on its buffer alone when a new T-HCI gate changes the memory
+    under Q (0: none). Without them T-HCI-DMC on BabyAI-L1 fell from 0.46 success to 0.02 at
+    the third gate and stayed there."""
     dmc_gradient_steps: int = 16
     """DMC's gradient steps per rollout (on BabyAI-L1, 4 stayed at random play for 125k steps;
     16 reached the memoryless optimum by 125k)."""
@@ -346,6 +350,8 @@ class TrainConfig:
         for name in ("dmc_buffer_episodes", "dmc_batch_episodes", "dmc_gradient_steps"):
             if getattr(self, name) < 1:
                 raise ThciError(f"--{_flag(name)} must be >= 1, got {getattr(self, name)}")
+        if self.dmc_refit_steps < 0:
+            raise ThciError(f"--dmc-refit-steps must be >= 0, got {self.dmc_refit_steps}")
         if self.dmc_epsilon_decay < 0:
             raise ThciError(f"--dmc-epsilon-decay must be >= 0, got {self.dmc_epsilon_decay}")
         if self.method == "sai" and self.encoder_size % 4:

@@ -114,13 +114,25 @@ class DMC:
         self, agent: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Rollout
     ) -> dict[str, float]:
         """Add the rollout's finished episodes to the buffer, then take the gradient steps."""
-        cfg = self.config
         self.add(rollout)
-        if not self.buffer:  # every episode is still running: nothing to regress on yet
+        return self._fit(agent, optimizer, self.config.dmc_gradient_steps)
+
+    def refit(self, agent: ActorCritic, optimizer: torch.optim.Optimizer) -> dict[str, float]:
+        """``--dmc-refit-steps`` gradient steps on the buffer alone, when the memory has just
+        changed under Q (a new T-HCI gate): the greedy policy must not act on a Q fitted to
+        the old memory."""
+        return self._fit(agent, optimizer, self.config.dmc_refit_steps)
+
+    def _fit(
+        self, agent: ActorCritic, optimizer: torch.optim.Optimizer, steps: int
+    ) -> dict[str, float]:
+        """`steps` gradient steps, each on dmc_batch_episodes episodes from the buffer."""
+        cfg = self.config
+        if not self.buffer or steps == 0:  # nothing to regress on yet
             return {"q_loss": float("nan"), "q_mean": float("nan")}
         batch_size = min(cfg.dmc_batch_episodes, len(self.buffer))
         losses, q_means = [], []
-        for _ in range(cfg.dmc_gradient_steps):
+        for _ in range(steps):
             which = torch.randperm(len(self.buffer))[:batch_size].tolist()
             batch = [self.buffer[i] for i in which]
             obs, valid = _padded([e["obs"] for e in batch])

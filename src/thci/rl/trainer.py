@@ -317,6 +317,8 @@ def _train(
                 record = ci.step(global_step, solved=tracker.solved)
                 if record is not None:
                     write_ci_rounds(run, ci)
+                    if isinstance(algorithm, DMC):  # Q was fitted to the memory of the old gate
+                        algorithm.refit(agent, optimizer)
                     if bonus is not None and bonus.memory is not None:  # --count-memory
                         bonus.memory.set_gate(ci.last_result.causal)
                     for key in ("interventions", "observed", "causal", "seconds"):
