@@ -118,9 +118,10 @@ class TrainConfig:
     dmc_batch_episodes: int = 32
     """Episodes per DMC gradient step, drawn from the buffer without replacement."""
     dmc_refit_steps: int = 200
-    """Gradient steps DMC takes on its buffer alone when a new T-HCI gate changes the memory
-    under Q (0: none). Without them T-HCI-DMC on BabyAI-L1 fell from 0.46 success to 0.02 at
-    the third gate and stayed there."""
+    """Gradient steps DMC takes on its buffer alone when a CI round changes the gate's kept set,
+    so the greedy policy does not act on a Q fitted to the old memory (0: none). Evidence is
+    one seed each way on BabyAI-L1 (docs/babyai.md): without, a dip around the third gate never
+    recovered; with, a similar dip recovered within 6k steps."""
     dmc_gradient_steps: int = 16
     """DMC's gradient steps per rollout (on BabyAI-L1, 4 stayed at random play for 125k steps;
     16 reached the memoryless optimum by 125k)."""

@@ -14,6 +14,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from gymnasium.vector import VectorEnv
 from torch.utils.tensorboard import SummaryWriter
@@ -314,13 +315,15 @@ def _train(
             losses = algorithm.update(agent, optimizer, rollout)
             update += 1
             if ci is not None:
+                kept_before = None if ci.last_result is None else ci.last_result.causal
                 record = ci.step(global_step, solved=tracker.solved)
                 if record is not None:
                     write_ci_rounds(run, ci)
-                    if isinstance(algorithm, DMC):  # Q was fitted to the memory of the old gate
-                        algorithm.refit(agent, optimizer)
+                    kept = ci.last_result.causal
+                    if isinstance(algorithm, DMC) and not np.array_equal(kept_before, kept):
+                        algorithm.refit(agent, optimizer)  # Q was fitted to the old memory
                     if bonus is not None and bonus.memory is not None:  # --count-memory
-                        bonus.memory.set_gate(ci.last_result.causal)
+                        bonus.memory.set_gate(kept)
                     for key in ("interventions", "observed", "causal", "seconds"):
                         writer.add_scalar(f"ci/{key}", getattr(record, key), global_step)
                     writer.add_scalar("ci/blocking_seconds", record.blocking_seconds, global_step)
