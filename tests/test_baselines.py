@@ -375,8 +375,8 @@ def test_every_method_trains_with_every_algorithm(tmp_path, method, algo):
 )
 def test_side_inputs_survive_stop_and_resume(tmp_path, args):
     args = [*args, "--seed", "2"]
-    reference = train(tmp_path, "reference", "--total-steps", "4096", *args)
-    assert_stop_and_resume_matches(tmp_path, reference, args)
+    reference = train(tmp_path, "reference", "--total-steps", "2048", *args)
+    assert_stop_and_resume_matches(tmp_path, reference, args, total=2048)
 
 
 def test_parameter_count_is_printed_at_the_start(tmp_path, capsys):

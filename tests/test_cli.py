@@ -153,7 +153,7 @@ def test_same_seed_same_result_and_other_seed_differs(tmp_path):
 
 
 def test_resume_after_kill_gives_the_uninterrupted_result(tmp_path):
-    args = ["--total-steps", "16384", "--checkpoint-every", "3", "--seed", "3", *FAST]
+    args = ["--total-steps", "8192", "--checkpoint-every", "3", "--seed", "3", *FAST]
     reference = train(tmp_path, "reference", *args)
 
     run_dir = tmp_path / "killed"
@@ -207,16 +207,20 @@ def test_lstm_ppo_learns_paper_maze_level1(tmp_path):
 
 
 def assert_stop_and_resume_matches(
-    tmp_path: Path, reference: dict, args: list[str], round_in_flight: bool = False
+    tmp_path: Path,
+    reference: dict,
+    args: list[str],
+    round_in_flight: bool = False,
+    total: int = 4096,
 ) -> None:
-    """A run stopped at 2048 steps and resumed to 4096 ends like `reference` (4096 at once);
-    with `round_in_flight`, the stopped run's checkpoint holds a CI round not yet applied."""
-    train(tmp_path, "split", "--total-steps", "2048", *args)
+    """A run stopped at total / 2 steps and resumed to `total` ends like `reference` (`total`
+    at once); with `round_in_flight`, the stopped checkpoint holds a CI round not yet applied."""
+    train(tmp_path, "split", "--total-steps", str(total // 2), *args)
     if round_in_flight:
         checkpoint = torch.load(tmp_path / "split" / "checkpoint.pt", weights_only=True)
         assert checkpoint["ci"]["round_in_flight"] is not None
         assert checkpoint["ci"]["pool"]["first_episode"] > 0  # the pool has slid
-    resume = ["--run-dir", str(tmp_path / "split"), "--resume", "--total-steps", "4096"]
+    resume = ["--run-dir", str(tmp_path / "split"), "--resume", "--total-steps", str(total)]
     assert run_cli(["train", *resume, *FAST, *args]) == 0
     resumed = json.loads((tmp_path / "split" / "summary.json").read_text())
     assert without_timing(resumed) == without_timing(reference)
@@ -348,10 +352,10 @@ def test_count_exploration_adds_bonus_and_resumes_to_the_same_result(tmp_path, e
         "--seed",
         "2",
     ]
-    reference = train(tmp_path, "reference", "--total-steps", "4096", *args)
-    plain = train(tmp_path, "plain", "--total-steps", "4096", "--seed", "2")
+    reference = train(tmp_path, "reference", "--total-steps", "2048", *args)
+    plain = train(tmp_path, "plain", "--total-steps", "2048", "--seed", "2")
     assert without_timing(reference) != without_timing(plain)  # the bonus changes learning
-    assert_stop_and_resume_matches(tmp_path, reference, args)
+    assert_stop_and_resume_matches(tmp_path, reference, args, total=2048)
 
 
 def test_count_memory_leaves_a_memory_that_keeps_everything_to_count_places(tmp_path):
