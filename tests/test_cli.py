@@ -305,11 +305,41 @@ def test_t_hci_run_reports_ci_and_resumes_to_the_same_result(tmp_path):
 
 
 @pytest.mark.parametrize("algo", ["a2c", "dmc"])
-def test_a2c_and_dmc_train_the_causal_memory_and_resume_to_the_same_result(tmp_path, algo):
+def test_a2c_and_dmc_train_the_causal_memory_and_resume_to_the_same_result(
+    tmp_path, monkeypatch, algo
+):
     # (and the optional per-intervention fine-tuning of the effect predictor)
+    from thci.causal.loop import CausalInferenceLoop
+    from thci.rl.dmc import DMC
+
+    # Record each applied round's kept set and each DMC refit, in the order they happen.
+    events: list[tuple[str, tuple[int, ...]]] = []
+    step, refit = CausalInferenceLoop.step, DMC.refit
+
+    def recording_step(self, *args, **kwargs):
+        record = step(self, *args, **kwargs)
+        if record is not None:
+            events.append(("round", tuple(self.last_result.causal.tolist())))
+        return record
+
+    def recording_refit(self, *args, **kwargs):
+        events.append(("refit", ()))
+        return refit(self, *args, **kwargs)
+
+    monkeypatch.setattr(CausalInferenceLoop, "step", recording_step)
+    monkeypatch.setattr(DMC, "refit", recording_refit)
     args = [*T_HCI_FAST, "--algo", algo, "--ci-finetune-steps", "5"]
     reference = train(tmp_path, "reference", "--total-steps", "4096", *args)
     assert reference["algo"] == algo and reference["ci_rounds"] >= 1
+    # DMC refits Q right after a round whose kept set differs from the last one, never else.
+    expected, last = [], None
+    for kind, kept in events:
+        if kind == "round":
+            expected.append(("round", kept))
+            if algo == "dmc" and kept != last:
+                expected.append(("refit", ()))
+            last = kept
+    assert events == expected
     assert reference["episodes"] > 0
     # DMC carries unfinished episodes across rollouts: they must survive the checkpoint too
     assert_stop_and_resume_matches(tmp_path, reference, args)
