@@ -956,22 +956,41 @@ def test_ci_rounds_stop_once_two_in_a_row_agree_also_with_undecided_observations
     assert not loop.due(config.ci_every)
 
 
-def test_ci_rounds_that_keep_nothing_never_agree():
+def test_ci_rounds_that_keep_nothing_never_agree_nor_use_up_the_round_cap():
     """An empty memory leaves the policy memoryless, so a later pool can still show what
-    an early one (a policy that rarely reaches an outcome) did not."""
+    an early one (a policy that rarely reaches an outcome) did not: empty rounds neither
+    agree nor count against --ci-max-rounds, only against --ci-max-empty-rounds."""
     config = TrainConfig(
-        method="t-hci", ci_min_episodes=0, ci_min_rewarded_episodes=0, ci_max_rounds=4
+        method="t-hci",
+        ci_min_episodes=0,
+        ci_min_rewarded_episodes=0,
+        ci_max_rounds=3,
+        ci_max_empty_rounds=4,
     )
     loop = CausalInferenceLoop(config, gym.spaces.Box(0, 1, (3,)), 2, 1, Gate(3))
     job = SimpleNamespace(pool=SimpleNamespace(lengths=np.ones(5)))
     observed, nothing = np.arange(3), np.zeros(0, dtype=np.int64)
-    for rounds in range(1, 5):
-        result = CIResult("t-hci", observed, observed, nothing, nothing)
+
+    def apply_round(kept: list[int]) -> None:
+        kept_codes = np.array(kept, dtype=np.int64)
+        eliminated = np.setdiff1d(observed, kept_codes)
+        result = CIResult("t-hci", observed, eliminated, kept_codes, nothing)
         outcome = CIOutcome(result, Gate(3).state_dict(), 1.0, 0.1, None)
         loop.pending = _PendingRound(job, 0, 0, _Computed(outcome))
         loop.step(1)
-        # a fifth round only if ci_max_rounds allowed it
-        assert loop.due(config.ci_every) == (rounds < config.ci_max_rounds)
+
+    # empty, [0], empty, [1], empty, [2]: six rounds in all, three that keep something
+    for kept in ([], [0], [], [1], [], [2]):
+        apply_round(kept)
+        kept_rounds = sum(1 for r in loop.rounds if r.causal > 0)
+        assert loop.due(config.ci_every) == (kept_rounds < config.ci_max_rounds)
+    assert len(loop.rounds) == 6 and not loop.due(config.ci_every)
+
+    # a run whose rounds keep nothing stops after --ci-max-empty-rounds
+    loop = CausalInferenceLoop(config, gym.spaces.Box(0, 1, (3,)), 2, 1, Gate(3))
+    for rounds in range(1, 5):
+        apply_round([])
+        assert loop.due(config.ci_every) == (rounds < config.ci_max_empty_rounds)
 
 
 def test_no_ci_round_starts_once_the_run_has_solved_but_one_in_flight_still_applies():

@@ -200,8 +200,16 @@ class TrainConfig:
     worth predicting, every observation looks like it has no effect, and a round would eliminate
     the very causes (seen in Maze L3, where random play is rewarded in 0.5% of episodes)."""
     ci_max_rounds: int = 8
-    """At most this many CI rounds (rounds also stop once two in a row agree on a non-empty
-    causal set; rounds that keep nothing go on, as the policy stays memoryless)."""
+    """At most this many CI rounds that keep something (rounds also stop once two in a row
+    agree on a non-empty causal set). Rounds that keep nothing count against
+    --ci-max-empty-rounds instead: the memory is then empty, the policy memoryless, and a later
+    pool can show what an early one did not."""
+    ci_max_empty_rounds: int = 24
+    """At most this many CI rounds that keep nothing (one every --ci-every steps: 24 look for
+    ~1.6M steps at the default), so a task without causal observations stops paying for them.
+    On BabyAI-L2 (seed 1) the first eight rounds ran on pools of a policy that reached a ball
+    in at most 13% of episodes, seven kept nothing, and with the old cap of 8 rounds in all
+    the memory stayed empty for good."""
     ci_pool_episodes: int = 2000
     """Capacity of the replay pool (whole episodes, oldest dropped first)."""
     ci_z: int = 4
@@ -302,6 +310,7 @@ class TrainConfig:
             "ci_every": self.ci_every,
             "ci_min_episodes": self.ci_min_episodes,
             "ci_max_rounds": self.ci_max_rounds,
+            "ci_max_empty_rounds": self.ci_max_empty_rounds,
             "ci_pool_episodes": self.ci_pool_episodes,
             "ci_base_steps": self.ci_base_steps,
             "ci_ensemble": self.ci_ensemble,

@@ -8,8 +8,9 @@ without causal effect (O^w), and fit the gate to O^w (Eq. 10). The round's gate 
 moment the agent's causal memory drops those observations. Until then the memory holds nothing
 (``ci_initial_memory``: the policy starts memoryless, so the first pool shows what history
 decides instead of hiding it behind a policy that already uses it). Rounds stop once two in a
-row agree (or after ``ci_max_rounds``): each later pool comes from a policy that acts on its
-memory more, and such a pool hides causes rather than revealing them (see ``_more_rounds``).
+row agree (or after ``ci_max_rounds`` rounds that keep something): each later pool comes from a
+policy that acts on its memory more, and such a pool hides causes rather than revealing them
+(see ``_more_rounds``).
 
 As in Fig. 3, the two loops run side by side: with ``ci_async`` a round runs in a worker
 process while the RL loop goes on, and the RL loop waits only if the round is not finished when
@@ -395,7 +396,8 @@ class CausalInferenceLoop:
         )
 
     def _more_rounds(self) -> bool:
-        """Rounds go on until two in a row agree, or until ``ci_max_rounds``, even if some code
+        """Rounds go on until two in a row agree, or until ``ci_max_rounds`` rounds have kept
+        something (``ci_max_empty_rounds`` bounds those that keep nothing), even if some code
         they keep was never confirmed. Going on until every kept code was confirmed left the
         decision to later pools, which come from a policy that acts on the memory: on Maze L4
         (seed 2, 1000-step fits) two rounds kept the labels {0, 1, 2} with the complementary
@@ -408,8 +410,15 @@ class CausalInferenceLoop:
         wandered until the time limit and reached a ball in ~1 of 4 episodes; both kept
         nothing, rounds stopped, and the policy stayed memoryless (0.48 success at 1.5M steps).
         A round on the same run's pool at 520k steps (a memoryless policy that reaches a ball
-        in most episodes) found the signpost codes (ATE 0.42 [0.39, 0.44] for the first part)."""
-        return len(self.rounds) < self.config.ci_max_rounds and self.stable_rounds < 2
+        in most episodes) found the signpost codes (ATE 0.42 [0.39, 0.44] for the first part).
+        For the same reason empty rounds do not use up ``ci_max_rounds``."""
+        kept_something = sum(1 for r in self.rounds if r.causal > 0)
+        empty = len(self.rounds) - kept_something
+        return (
+            self.stable_rounds < 2
+            and kept_something < self.config.ci_max_rounds
+            and empty < self.config.ci_max_empty_rounds
+        )
 
     def make_job(self, pool: PoolArrays) -> CIJob:
         """The CI round of the next round's index on `pool` (episodes of this run's pool)."""
