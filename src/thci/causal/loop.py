@@ -21,6 +21,7 @@ round is in flight holds the round's inputs, so a resumed run recomputes the sam
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import time
 from collections.abc import Iterator
@@ -205,7 +206,11 @@ class CIWorker:
 
     def close(self) -> None:
         """Stop the worker (a round in flight is dropped)."""
-        self.pool.terminate()
+        # CPython gh-78178: Pool.terminate can find its result-handler thread already gone
+        # while a dropped round is still listed, and raise (seen once in 363 tests, the worker
+        # process already stopped); the pool is in its TERMINATE state either way.
+        with contextlib.suppress(AssertionError):
+            self.pool.terminate()
         self.pool.join()
 
 
