@@ -68,6 +68,8 @@ def play(run_dir: Path, episodes: int, seed: int) -> dict:
                     records.append((*choice, bool(reward[0] > 0)))
                 finished, choice = finished + 1, None
     envs.close()
+    if not records:
+        raise SystemExit(f"{run_dir}: no episode reached the choice state in {episodes}")
     r = np.array(records, dtype=float)
     share = r[:, 0] / np.maximum(r[:, 0] + r[:, 1], 1e-12)
     return {

@@ -205,8 +205,9 @@ class TrainConfig:
     --ci-max-empty-rounds instead: the memory is then empty, the policy memoryless, and a later
     pool can show what an early one did not."""
     ci_max_empty_rounds: int = 24
-    """At most this many CI rounds that keep nothing (one every --ci-every steps: 24 look for
-    ~1.6M steps at the default), so a task without causal observations stops paying for them.
+    """At most this many CI rounds that keep nothing (a round starts once the last one is
+    applied, --ci-lag steps after its start: 24 look for ~1.6M steps at the defaults), so a
+    task without causal observations stops paying for them.
     On BabyAI-L2 (seed 1) the first eight rounds ran on pools of a policy that reached a ball
     in at most 13% of episodes, seven kept nothing, and with the old cap of 8 rounds in all
     the memory stayed empty for good."""
