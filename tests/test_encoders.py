@@ -165,7 +165,7 @@ def test_cell_encoder_refuses_a_layout_beyond_the_observation_or_too_many_values
 
 
 @pytest.mark.parametrize("method", ["lstm", "t-hci", "wmg", "sai"])
-def test_padding_skips_the_encoder_and_leaves_the_real_steps_unchanged(method):
+def test_padding_skips_the_encoder_and_gate_and_leaves_the_real_steps_unchanged(method):
     config = TrainConfig(env="thci/BabyAI-L1-v0", num_envs=2, encoder="cells", method=method)
     envs = make_vector_env(config.env, 2)
     agent = build_agent(config, envs)
@@ -180,10 +180,16 @@ def test_padding_skips_the_encoder_and_leaves_the_real_steps_unchanged(method):
     inputs = torch.cat((inputs, side), dim=-1)
     valid = torch.tensor([[True] * 6, [True] * 3 + [False] * 3])  # row 1: 3 steps, padded
     inputs[1, 3:] = 0.0
-    calls = []
+    calls, gate_calls = [], []
     agent.encoder.register_forward_hook(lambda _m, args, _out: calls.append(args[0].shape[0]))
+    if agent.gate is not None:  # an active gate: its keep mask shapes the memory's input
+        agent.gate.active.fill_(True)
+        agent.gate.register_forward_hook(
+            lambda _m, args, _out: gate_calls.append(args[0].shape[:-1].numel())
+        )
     full_logits, full_values = agent.evaluate(inputs, agent.initial_state(2))
     logits, values = agent.evaluate(inputs, agent.initial_state(2), valid)
     assert calls[-1] == 9  # the encoder ran on the 9 real steps only
+    assert gate_calls == ([] if agent.gate is None else [12, 9])  # the gate too
     assert torch.allclose(logits[valid], full_logits[valid], atol=1e-6)
     assert torch.allclose(values[valid], full_values[valid], atol=1e-6)
