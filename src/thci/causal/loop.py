@@ -46,7 +46,8 @@ from thci.causal.predictor import (
 from thci.causal.replay import PoolArrays, PoolEpisode, ReplayPool, pad_episodes
 from thci.causal.search import DEFAULT_MIN_SUPPORT, DEFAULT_XI, DEFAULT_Z, CIResult, hci, t_hci
 from thci.causal.synthetic import generate_planted_episodes
-from thci.config import TrainConfig
+from thci.causal.units import UnitEffectEstimator, cell_units, codes_result, unit_value
+from thci.config import DEFAULT_CELL_LAYOUT, TrainConfig
 from thci.rl.episodes import EpisodeAssembler
 from thci.rl.rollout import Rollout
 from thci.workers import die_with_parent
@@ -89,6 +90,9 @@ class CIJob:
         min_support: T-HCI splits a part only while it occurs in this many held-out episodes
             (and admits a substitute of a cause seen in as many).
         substitutes: admit the observations that stand in for a cause (search.t_hci).
+        units: with ``--ci-units cells``, code -> the cell values of its view
+            (thci.causal.units); the search then tests cell values, and `keep` and `prefer`
+            hold cell values too.
     """
 
     pool: PoolArrays
@@ -106,6 +110,7 @@ class CIJob:
     prefer: np.ndarray | None = None
     min_support: int = DEFAULT_MIN_SUPPORT
     substitutes: bool = True
+    units: dict[int, np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -157,13 +162,19 @@ def run_ci_job(job: CIJob, parts: list[FittedPart] | None = None) -> CIOutcome:
     seconds then include the parts' fits."""
     started = time.perf_counter()
     with _round_context(job):
-        estimator = EffectEstimator(
-            job.pool,
-            job.num_actions,
-            job.predictor,
-            warm_start=job.warm_start,
-            fitted=None if parts is None else join_members([p.parameters for p in parts]),
-        )
+        estimator: EffectEstimator | UnitEffectEstimator
+        if job.units is not None:
+            estimator = UnitEffectEstimator(
+                job.pool, job.num_actions, job.predictor, job.units, warm_start=job.warm_start
+            )
+        else:
+            estimator = EffectEstimator(
+                job.pool,
+                job.num_actions,
+                job.predictor,
+                warm_start=job.warm_start,
+                fitted=None if parts is None else join_members([p.parameters for p in parts]),
+            )
         keep = None if job.keep is None else estimator.data.dense_ids(job.keep)
         prefer = None if job.prefer is None else estimator.data.dense_ids(job.prefer)
         if job.method == "hci":
@@ -185,6 +196,8 @@ def run_ci_job(job: CIJob, parts: list[FittedPart] | None = None) -> CIOutcome:
                 prefer=prefer,
                 substitutes=job.substitutes,
             )
+        if job.units is not None:
+            result = codes_result(result, job.units)
         gate = job.gate.build()
         gate.load_state_dict(job.gate_state)
         observations = torch.as_tensor(
@@ -220,13 +233,15 @@ def run_ci_job_on_two_cores(job: CIJob, worker: CIWorker) -> CIOutcome:
     search runs here. For a round the RL loop waits for whole (the final round), whose core is
     idle meanwhile. Maze
     L1-L3 first-round pools, 400 steps: 2.5-3.8 s in one process, 2.3-2.8 s in two. A single
-    predictor, or one fine-tuned per intervention (which continues the fit's Adam state), is
-    fitted in one piece, and so is a round that comes while the worker is still starting up:
+    predictor, or one fine-tuned per intervention (which continues the fit's Adam state), or
+    one over cell values (`--ci-units cells`), is fitted in one piece, and so is a round that
+    comes while the worker is still starting up:
     waiting for it (a fresh interpreter importing torch and warming up, ~6 s at the time,
     longer than Maze L1 takes to fill its first pool) made the RL loop wait 6.2 s for a 2.6 s
     round."""
     members = job.predictor.ensemble
-    if members < 2 or job.predictor.finetune_steps > 0 or not worker.ready.is_set():
+    split = members >= 2 and job.predictor.finetune_steps == 0 and job.units is None
+    if not split or not worker.ready.is_set():
         return run_ci_job(job)
     half = members // 2
     first = worker.pool.apply_async(fit_ci_part, (job, list(range(half))))
@@ -429,6 +444,10 @@ class CausalInferenceLoop:
         """The CI round of the next round's index on `pool` (episodes of this run's pool)."""
         cfg = self.config
         codes = np.unique(pool.codes[pool.codes >= 0]).tolist()
+        units = None
+        if cfg.ci_units == "cells":
+            layout = cfg.cell_layout or DEFAULT_CELL_LAYOUT
+            units = {c: cell_units(self.pool.observations[c], layout) for c in codes}
         return CIJob(
             pool=pool,
             observations={c: self.pool.observations[c] for c in codes},
@@ -440,7 +459,7 @@ class CausalInferenceLoop:
             xi=cfg.ci_xi,
             predictor=PredictorConfig(
                 target=cfg.ci_target,
-                base_steps=cfg.ci_base_steps,
+                base_steps=cfg.ci_base_steps if units is None else cfg.ci_unit_steps,
                 warm_steps=cfg.ci_warm_steps,
                 whole_batch_steps=cfg.ci_whole_batch_steps,
                 finetune_steps=cfg.ci_finetune_steps,
@@ -452,10 +471,18 @@ class CausalInferenceLoop:
             keep=np.array(sorted(self.causal_so_far), dtype=np.int64)
             if cfg.ci_cumulative
             else None,
-            prefer=None if self.last_result is None else self.last_result.causal,
+            prefer=self._kept_units() if units is not None else self._kept_codes(),
             min_support=cfg.ci_min_support,
             substitutes=cfg.ci_substitutes,
+            units=units,
         )
+
+    def _kept_codes(self) -> np.ndarray | None:
+        return None if self.last_result is None else self.last_result.causal
+
+    def _kept_units(self) -> np.ndarray | None:
+        units = None if self.last_result is None else self.last_result.units
+        return None if units is None else units.causal
 
     def _start(self, global_step: int) -> None:
         job = self.make_job(self.pool.arrays())
@@ -500,7 +527,8 @@ class CausalInferenceLoop:
         self.gate.load_state_dict(outcome.gate_state)
         self.predictor_state = outcome.predictor
         result = outcome.result
-        self.causal_so_far.update(int(c) for c in result.confirmed)
+        confirmed = result.confirmed if result.units is None else result.units.confirmed
+        self.causal_so_far.update(int(c) for c in confirmed)
         # Two empty results do not settle anything: the memory stays empty, so the policy
         # stays memoryless and later pools stay as informative (see _more_rounds).
         same = (
@@ -529,7 +557,7 @@ class CausalInferenceLoop:
             self.intervention_log.append(
                 {
                     "round": record.round,
-                    "observations": self.describe(item.codes),
+                    "observations": self.describe_tested(item.codes),
                     "ate": round(item.ate, 5),
                     "ate_lower": round(item.ate_lower, 5),
                     "ate_upper": round(item.ate_upper, 5),
@@ -574,6 +602,14 @@ class CausalInferenceLoop:
         observations are one-hot (e.g. the maze's cell codes), else as discretizer codes."""
         return [] if self.last_result is None else self.describe(self.last_result.causal)
 
+    def describe_tested(self, tested) -> list:
+        """What an intervention masked: codes (:meth:`describe`), or with ``--ci-units
+        cells`` the cell values, each as its list of values (e.g. [object, colour, state])."""
+        if self.config.ci_units != "cells":
+            return self.describe(tested)
+        size = (self.config.cell_layout or DEFAULT_CELL_LAYOUT)[2]
+        return sorted(unit_value(u, size) for u in tested)
+
     def describe(self, codes) -> list[int]:
         """Codes as the index of the one-hot entry when observations are one-hot, else as is."""
         described = []
@@ -591,6 +627,11 @@ class CausalInferenceLoop:
             "interventions_per_round": [r.interventions for r in self.rounds],
             "observation_space_size": self.rounds[-1].observed if self.rounds else None,
             "causal_observations": self.describe_causal(),
+            **(
+                {"causal_cell_values": self.describe_tested(_or_empty(self._kept_units()))}
+                if self.config.ci_units == "cells"
+                else {}
+            ),
             "ci_wall_clock_s": round(sum(r.seconds for r in self.rounds), 3),
             "ci_round_seconds": [round(r.seconds, 3) for r in self.rounds],
             "ci_blocking_s": round(sum(r.blocking_seconds for r in self.rounds), 3),
@@ -623,6 +664,9 @@ class CausalInferenceLoop:
             "last_observed": None
             if self.last_result is None
             else torch.as_tensor(self.last_result.observed),
+            "last_units_causal": None
+            if self._kept_units() is None
+            else torch.as_tensor(self._kept_units()),
             "stable_rounds": self.stable_rounds,
             "next_round_step": self.next_round_step,
             "causal_so_far": sorted(self.causal_so_far),
@@ -664,12 +708,19 @@ class CausalInferenceLoop:
         self.rounds = [CIRound(**r) for r in state["rounds"]]
         self.intervention_log = state["intervention_log"]
         if state["last_causal"] is not None:
+            confirmed = np.array(sorted(state.get("causal_so_far", [])), dtype=np.int64)
+            units = state.get("last_units_causal")
             self.last_result = CIResult(
                 "restored",
                 state["last_observed"].numpy(),
                 state["last_eliminated"].numpy(),
                 state["last_causal"].numpy(),
-                np.array(sorted(state.get("causal_so_far", [])), dtype=np.int64),
+                confirmed,
+                units=None
+                if units is None
+                else CIResult(
+                    "restored", units.numpy(), np.zeros(0, np.int64), units.numpy(), confirmed
+                ),
             )
         self.stable_rounds = state["stable_rounds"]
         self.next_round_step = state["next_round_step"]
@@ -683,6 +734,15 @@ class CausalInferenceLoop:
         if pending is not None:
             pool = _arrays_from_tensors(pending["pool"])
             self._submit(self.make_job(pool), pending["started_step"], pending["apply_step"])
+
+
+def _or_empty(codes: np.ndarray | None) -> np.ndarray:
+    return np.zeros(0, np.int64) if codes is None else codes
+
+
+def _restored_units(causal: np.ndarray, confirmed: np.ndarray) -> CIResult:
+    """The part of a checkpointed round's units result later rounds read (causal, confirmed)."""
+    return CIResult("restored", causal, np.zeros(0, np.int64), causal, confirmed)
 
 
 def start_ci_worker() -> CIWorker:

@@ -660,15 +660,7 @@ class BatchedPredictor(nn.Module):
         batch). The bag keeps the first of tied maxima, and positions come latest first, so
         that a tie credits the same (latest) position as the running max (cummax) does.
         """
-        num_models, num_rows, d = self.embed.shape
-        padding = num_models * num_rows
-        table = torch.cat((self.embed.reshape(padding, d), self.embed.new_zeros(1, d)))
-        index = rows_of + (torch.arange(num_models) * num_rows).view(-1, 1, 1)  # (K, n, L)
-        index = index.masked_fill(masked | (rows_of < 0), padding)
-        history = nn.functional.embedding_bag(
-            index.view(-1, index.shape[-1]), table, mode="max", padding_idx=padding
-        )
-        return history.view(num_models, -1, d)
+        return bag_max(self.embed, rows_of, masked)
 
     @property
     def _w1(self) -> dict[str, torch.Tensor]:
@@ -847,6 +839,57 @@ class BatchedPredictor(nn.Module):
             reduction="none",
         ).view(num_models, -1)
         return (1 - torch.exp(-nll)).unsqueeze(0), nll
+
+
+def effect_bounds(
+    folds: list[tuple[torch.Tensor, torch.Tensor]], data: CodeData, config: PredictorConfig
+) -> EffectEstimate:
+    """The ATE of K interventions and its bounds, from each fold's D_e (C, K, E_m) and where
+    the interventions apply (K, E_m) (module doc, Estimator and Confidence)."""
+    if config.target in REWARD_PART:
+        # The reward part is measured against how much reward there is to predict: a sparse
+        # reward (2% of maze episodes early on) would otherwise dilute the effect of what
+        # decides it below any threshold, next to observations that matter every step. The
+        # floor keeps a nearly reward-free pool from amplifying noise without bound.
+        reward_scale = float(data.rewards[data.test].abs().sum(dim=1).mean())
+        for fold_extra, _ in folds:
+            fold_extra[REWARD_PART[config.target]] /= max(reward_scale, REWARD_SCALE_FLOOR)
+    extra = torch.cat([f[0] for f in folds], dim=-1)  # (C, K, E): D_e of each episode
+    hit = torch.cat([f[1] for f in folds], dim=-1)  # (K, E): episodes S applies to
+    count = hit.sum(dim=1).clamp(min=2)
+    mean = extra.sum(dim=-1) / count  # (C, K): the ATE
+    # Two estimates of the ATE's variance; the larger counts. Over episodes: the spread of
+    # D_e. Over folds: the spread of the members' means, which also holds how each member
+    # happened to be fitted (on hard pools this dominated: single fits with different seeds
+    # kept the causes of a Maze-L3 pool in one and dropped all of them in the other).
+    episode_var = ((extra - mean.unsqueeze(-1)) * hit).pow(2).sum(dim=-1) / (count - 1)
+    variance = episode_var / count
+    if len(folds) > 1:
+        fold_means = torch.stack(
+            [f[0].sum(dim=-1) / f[1].sum(dim=-1).clamp(min=1) for f in folds], dim=1
+        )  # (C, folds, K)
+        variance = torch.maximum(variance, fold_means.var(dim=1) / len(folds))
+    margin = config.confidence_z * variance.sqrt()
+    return EffectEstimate(
+        mean.max(dim=0).values.numpy(),
+        (mean - margin).min(dim=0).values.numpy(),
+        (mean + margin).max(dim=0).values.numpy(),
+    )
+
+
+def bag_max(embed: torch.Tensor, rows_of: torch.Tensor, masked: torch.Tensor) -> torch.Tensor:
+    """(K, n, d): for K models (embedding tables `embed` (K, R, d)) and n bags, the max of
+    the rows `rows_of` (n, W) (-1: none) that are not `masked` (K, n, W); the zero vector
+    for an empty bag (see :meth:`BatchedPredictor.bag_max`)."""
+    num_models, num_rows, d = embed.shape
+    padding = num_models * num_rows
+    table = torch.cat((embed.reshape(padding, d), embed.new_zeros(1, d)))
+    index = rows_of + (torch.arange(num_models) * num_rows).view(-1, 1, 1)  # (K, n, W)
+    index = index.masked_fill(masked | (rows_of < 0), padding)
+    out = nn.functional.embedding_bag(
+        index.view(-1, index.shape[-1]), table, mode="max", padding_idx=padding
+    )
+    return out.view(num_models, -1, d)
 
 
 def _latest_distinct(codes: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1267,35 +1310,7 @@ class EffectEstimator:
             for member in range(self.config.ensemble)
             if len(held_out := self.data.held_out(member)) > 0
         ]
-        if self.config.target in REWARD_PART:
-            # The reward part is measured against how much reward there is to predict: a sparse
-            # reward (2% of maze episodes early on) would otherwise dilute the effect of what
-            # decides it below any threshold, next to observations that matter every step. The
-            # floor keeps a nearly reward-free pool from amplifying noise without bound.
-            reward_scale = float(self.data.rewards[self.data.test].abs().sum(dim=1).mean())
-            for fold_extra, _ in folds:
-                fold_extra[REWARD_PART[self.config.target]] /= max(reward_scale, REWARD_SCALE_FLOOR)
-        extra = torch.cat([f[0] for f in folds], dim=-1)  # (C, K, E): D_e of each episode
-        hit = torch.cat([f[1] for f in folds], dim=-1)  # (K, E): episodes S applies to
-        count = hit.sum(dim=1).clamp(min=2)
-        mean = extra.sum(dim=-1) / count  # (C, K): the ATE
-        # Two estimates of the ATE's variance; the larger counts. Over episodes: the spread of
-        # D_e. Over folds: the spread of the members' means, which also holds how each member
-        # happened to be fitted (on hard pools this dominated: single fits with different seeds
-        # kept the causes of a Maze-L3 pool in one and dropped all of them in the other).
-        episode_var = ((extra - mean.unsqueeze(-1)) * hit).pow(2).sum(dim=-1) / (count - 1)
-        variance = episode_var / count
-        if len(folds) > 1:
-            fold_means = torch.stack(
-                [f[0].sum(dim=-1) / f[1].sum(dim=-1).clamp(min=1) for f in folds], dim=1
-            )  # (C, folds, K)
-            variance = torch.maximum(variance, fold_means.var(dim=1) / len(folds))
-        margin = self.config.confidence_z * variance.sqrt()
-        return EffectEstimate(
-            mean.max(dim=0).values.numpy(),
-            (mean - margin).min(dim=0).values.numpy(),
-            (mean + margin).max(dim=0).values.numpy(),
-        )
+        return effect_bounds(folds, self.data, self.config)
 
     def _fold_effects(
         self, member: int, episodes: torch.Tensor, masks, num_interventions: int

@@ -118,6 +118,9 @@ class CIResult:
     confirmed: np.ndarray
     interventions: list[InterventionRecord] = field(default_factory=list)
     seconds: float = 0.0
+    units: CIResult | None = None
+    """With ``--ci-units cells``: the search's own result over cell values, from which this
+    one over codes follows (thci.causal.units.codes_result)."""
 
     @property
     def num_interventions(self) -> int:
