@@ -8,12 +8,15 @@ the signpost views (``info["causal"]``); the doorways, doors and rooms on the wa
 confounded with it. The round is the one training runs (`run_ci_job`: effect predictor with
 the reward target, T-HCI search, gate fit), once per discretizer, on the same episodes.
 
+``cell-values`` is the cell-set codes with interventions on cell values (``--ci-units cells``,
+thci.causal.units; Z 32, as the training runs set it).
+
 Reported per discretizer: |Ô|, the signpost codes among them, interventions, seconds, and
 how the round's gate decides on *held-out* episodes of the same policy: the share of signpost
 views it keeps (recall), of other views it removes, and TAIE over those episodes' steps.
 
     .venv/bin/python benchmarks/babyai_ci.py [--level 1] [--episodes 600] [--seed 0]
-        [--discretizers exact cell-set]
+        [--discretizers exact cell-set cell-values]
 
 Writes benchmarks/results/babyai_ci_l{LEVEL}_{EPISODES}.json and prints a table.
 """
@@ -37,6 +40,7 @@ from thci.causal.loop import CIJob, run_ci_job
 from thci.causal.predictor import PredictorConfig
 from thci.causal.replay import PoolEpisode, pad_episodes
 from thci.causal.search import DEFAULT_XI, DEFAULT_Z
+from thci.causal.units import cell_units
 from thci.envs.babyai import BabyAIExpert
 from thci.rl.encoders import observation_categories
 
@@ -80,7 +84,8 @@ def collect(
 def one_round(kind: str, train: list, held_out: list, env: gym.Env, seed: int) -> dict:
     """Run a CI round on `train` with discretizer `kind`; score its gate on `held_out`."""
     space = env.observation_space
-    disc = make_discretizer(kind, space, cell_layout=CELL_LAYOUT)
+    units = kind == "cell-values"
+    disc = make_discretizer("cell-set" if units else kind, space, cell_layout=CELL_LAYOUT)
     episodes, representatives, signpost_codes = [], {}, set()
     for views, actions, rewards, labels in train:
         codes = disc.encode(views)
@@ -91,7 +96,7 @@ def one_round(kind: str, train: list, held_out: list, env: gym.Env, seed: int) -
     gate_spec = GateSpec(
         int(np.prod(space.shape)),
         observation_categories(space),
-        CELL_LAYOUT if kind == "cell-set" else None,
+        CELL_LAYOUT if kind != "exact" else None,
     )
     job = CIJob(
         pool=pad_episodes(episodes),
@@ -100,10 +105,13 @@ def one_round(kind: str, train: list, held_out: list, env: gym.Env, seed: int) -
         gate=gate_spec,
         num_actions=int(env.action_space.n),
         method="t-hci",
-        z=DEFAULT_Z,
+        z=32 if units else DEFAULT_Z,
         xi=DEFAULT_XI,
         predictor=PredictorConfig(target="reward", seed=seed),
         threads=1,
+        units={c: cell_units(v, CELL_LAYOUT) for c, v in representatives.items()}
+        if units
+        else None,
     )
     started = time.perf_counter()
     outcome = run_ci_job(job)

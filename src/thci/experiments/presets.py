@@ -74,7 +74,14 @@ QUICK_SLOW_METHODS = {"nm": {**NM_TRAIN, "total_steps": 15_000}, "wmg": {"total_
 # bonus of 0.03 keeps the policy from committing to one turn at the choice before its memory
 # tells the target: T-HCI-PPO solved level 1 at 525k / 1.10M / 1.50M steps (seeds 1-3) against
 # 589k / 1.92M / 1.83M at 0.01 (docs/babyai.md, "Level 1: a stronger entropy bonus").
+# CI intervenes on cell values (a painted wall wherever it is seen), each tested alone first
+# (Z 32 >= the ~28 values): on known-answer pools of levels 1-3 its gate kept every signpost
+# view and removed every other (TAIE 0.000-0.0004, 16-29 interventions) where whole-view codes
+# kept 4-60% of them; T-HCI-PPO then solved level 1 at 438k / 476k (seeds 1-2) and level 2 at
+# 2.34M, which no method had solved in 3M (docs/babyai.md, "Interventions on cell values").
 BABYAI_TRAIN = {
+    "ci_units": "cells",
+    "ci_z": 32,
     "ent_coef": 0.03,
     "encoder": "cells",
     "stop_on_solve": True,
@@ -117,6 +124,21 @@ def _budgets(envs: tuple[str, ...], small: int, large: int, explore: bool) -> di
     return overrides
 
 
+# BabyAI levels 2-4 wait for 500 rewarded episodes before the first CI round: on level 2 the
+# default 50 came at 2-15% success, and those rounds kept no wall colour but balls, keys and
+# boxes too rarely paid to decide, each such round one of --ci-max-rounds; with 500 the first
+# round (at 848k steps) confirmed the five wall colours (docs/babyai.md).
+BABYAI_LATE_CI = {"ci_min_rewarded_episodes": 500}
+
+
+def _babyai_budgets(small: int, large: int) -> dict[str, dict]:
+    """Per-env overrides of the BabyAI presets: `_budgets`, and CI's late start on L2-L4."""
+    overrides = _budgets(PAPER_BABYAI, small, large, explore=False)
+    for env in PAPER_BABYAI[1:]:
+        overrides[env].update(BABYAI_LATE_CI)
+    return overrides
+
+
 PRESETS: dict[str, dict[str, Any]] = {
     "paper-maze": {
         "envs": list(PAPER_MAZE),
@@ -155,7 +177,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "methods": list(PAPER_METHODS),
         "seeds": list(range(1, 11)),
         "train": BABYAI_TRAIN,
-        "env_overrides": _budgets(PAPER_BABYAI, 1_000_000, 3_000_000, explore=False),
+        "env_overrides": _babyai_budgets(1_000_000, 3_000_000),
     },
     # Issue 4's comparison on BabyAI: LSTM-PPO beside T-HCI-PPO, 3 seeds, the BabyAI settings.
     # T-HCI-PPO solved the redesigned L1 (seed 1) at 589k steps, the oracle at 979k (1069 s and
@@ -165,14 +187,14 @@ PRESETS: dict[str, dict[str, Any]] = {
         "methods": ["lstm", "t-hci"],
         "seeds": [1, 2, 3],
         "train": BABYAI_TRAIN,
-        "env_overrides": _budgets(PAPER_BABYAI, 2_000_000, 3_000_000, explore=False),
+        "env_overrides": _babyai_budgets(2_000_000, 3_000_000),
     },
     "paper-babyai-quick": {
         "envs": list(PAPER_BABYAI),
         "methods": list(PAPER_METHODS),
         "seeds": [1],
         "train": BABYAI_TRAIN,
-        "env_overrides": _budgets(PAPER_BABYAI, 100_000, 100_000, explore=False),
+        "env_overrides": _babyai_budgets(100_000, 100_000),
         "method_overrides": QUICK_SLOW_METHODS,
     },
     "ablation": {
@@ -182,7 +204,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "train": {"stop_on_solve": True},
         "env_overrides": {
             PAPER_MAZE[2]: {"total_steps": 1_000_000, **MAZE_HARD_TRAIN},
-            PAPER_BABYAI[2]: {"total_steps": 3_000_000, **BABYAI_TRAIN},
+            PAPER_BABYAI[2]: {"total_steps": 3_000_000, **BABYAI_TRAIN, **BABYAI_LATE_CI},
         },
     },
     "ablation-quick": {
