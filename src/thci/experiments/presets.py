@@ -77,8 +77,8 @@ QUICK_SLOW_METHODS = {"nm": {**NM_TRAIN, "total_steps": 15_000}, "wmg": {"total_
 # CI intervenes on cell values (a painted wall wherever it is seen), each tested alone first
 # (Z 32 >= the ~28 values): on known-answer pools of levels 1-3 its gate kept every signpost
 # view and removed every other (TAIE 0.000-0.0004, 16-29 interventions) where whole-view codes
-# kept 4-60% of them; T-HCI-PPO then solved level 1 at 438k / 476k (seeds 1-2) and level 2 at
-# 2.34M, which no method had solved in 3M (docs/babyai.md, "Interventions on cell values").
+# kept 4-60% of them; T-HCI-PPO then solved level 1 at 438k / 476k / 1.31M (seeds 1-3) and level
+# 2 at 2.34M, which no method had solved in 3M (docs/babyai.md, "Interventions on cell values").
 BABYAI_TRAIN = {
     "ci_units": "cells",
     "ci_z": 32,
