@@ -123,7 +123,8 @@ def test_codes_result_keeps_exactly_the_views_that_show_a_kept_value():
     assert result.units is search and result.seconds == 1.5
 
 
-def test_a_unit_round_fits_the_gate_on_the_views_that_show_the_cue():
+@pytest.mark.parametrize("method", ["t-hci", "hci"])
+def test_a_unit_round_fits_the_gate_on_the_views_that_show_the_cue(method: str):
     episodes, units, observations = cue_pool(600)
     job = CIJob(
         pool=pad_episodes(episodes),
@@ -131,7 +132,7 @@ def test_a_unit_round_fits_the_gate_on_the_views_that_show_the_cue():
         gate_state=GateSpec(13).build().state_dict(),
         gate=GateSpec(13),
         num_actions=3,
-        method="t-hci",
+        method=method,
         z=32,
         xi=0.1,
         predictor=PredictorConfig(target="reward", seed=0, base_steps=1000),
