@@ -140,8 +140,8 @@ BABYAI_VIEW_COUNTS = {"count_key": None, "count_beta": 0.005}
 
 def _babyai_budgets(small: int, large: int) -> dict[str, dict]:
     """Per-env overrides of the BabyAI presets: `small` steps for L1, `large` for L2-L4 (T-HCI
-    solved L2 at 2.34M and 3.14M steps), CI's late start on L2-L4 and the bonus for new views
-    on L3-L4."""
+    solved L2 at 2.34M / 3.14M / 2.95M steps), CI's late start on L2-L4 and the bonus for new
+    views on L3-L4."""
     overrides = {PAPER_BABYAI[0]: {"total_steps": small}}
     for env in PAPER_BABYAI[1:]:
         overrides[env] = {"total_steps": large, **BABYAI_LATE_CI}
@@ -191,7 +191,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "env_overrides": _babyai_budgets(1_000_000, 3_000_000),
     },
     # Issue 4's comparison on BabyAI: LSTM-PPO beside T-HCI-PPO, 3 seeds, the BabyAI settings.
-    # T-HCI-PPO solved L1 at 438k-1.31M steps and L2 at 2.34M / 3.14M, so L1 gets 2M steps and
+    # T-HCI-PPO solved L1 at 438k-1.31M steps and L2 at 2.34M-3.14M, so L1 gets 2M steps and
     # L2-L4 4M.
     "babyai-lstm-vs-thci": {
         "envs": list(PAPER_BABYAI),
