@@ -9,7 +9,7 @@ confounded with it. The round is the one training runs (`run_ci_job`: effect pre
 the reward target, T-HCI search, gate fit), once per discretizer, on the same episodes.
 
 ``cell-values`` is the cell-set codes with interventions on cell values (``--ci-units cells``,
-thci.causal.units; Z 32, as the training runs set it).
+thci.causal.units; Z as the BabyAI presets set it, 32).
 
 Reported per discretizer: |Ô|, the signpost codes among them, interventions, seconds, and
 how the round's gate decides on *held-out* episodes of the same policy: the share of signpost
@@ -42,6 +42,7 @@ from thci.causal.replay import PoolEpisode, pad_episodes
 from thci.causal.search import DEFAULT_XI, DEFAULT_Z
 from thci.causal.units import cell_units
 from thci.envs.babyai import BabyAIExpert
+from thci.experiments.presets import BABYAI_TRAIN
 from thci.rl.encoders import observation_categories
 
 RESULTS = Path(__file__).parent / "results"
@@ -105,7 +106,7 @@ def one_round(kind: str, train: list, held_out: list, env: gym.Env, seed: int) -
         gate=gate_spec,
         num_actions=int(env.action_space.n),
         method="t-hci",
-        z=32 if units else DEFAULT_Z,
+        z=BABYAI_TRAIN["ci_z"] if units else DEFAULT_Z,
         xi=DEFAULT_XI,
         predictor=PredictorConfig(target="reward", seed=seed),
         threads=1,

@@ -17,11 +17,15 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
+from gymnasium.vector import VectorEnv
 
+from thci.rl.agent import ActorCritic
 from thci.rl.evaluate import load_run
 
 RESULTS = Path(__file__).parent / "results"
@@ -41,32 +45,46 @@ def correct_turn(level) -> int | None:
     return LEFT if east == target_north else RIGHT
 
 
+def sampled_steps(
+    envs: VectorEnv, agent: ActorCritic, obs: np.ndarray, observe: Callable[[Any], Any]
+) -> Iterator[tuple[Any, torch.Tensor, int, float, bool]]:
+    """The agent playing `envs` (one environment, just reset to `obs`) with sampled actions,
+    as trained, without end.
+
+    Yields per step: `observe(level)` of the level *before* the step, the policy's logits
+    (A,), the action, the reward and whether the episode ended (SAME_STEP autoreset: the level
+    then already holds the next episode)."""
+    level = envs.envs[0].unwrapped
+    state, start = agent.initial_state(1), torch.ones(1, dtype=torch.bool)
+    with torch.no_grad():
+        while True:
+            seen = observe(level)
+            logits, _, state = agent.step(torch.as_tensor(obs, dtype=torch.float32), state, start)
+            action = int(torch.distributions.Categorical(logits=logits).sample()[0])
+            obs, reward, terminated, truncated, _ = envs.step(np.array([action]))
+            start = torch.as_tensor(terminated | truncated)
+            yield seen, logits[0], action, float(reward[0]), bool(start[0])
+
+
 def play(run_dir: Path, episodes: int, seed: int) -> dict:
     """Choice-state statistics of `episodes` episodes of the run's agent."""
     _, envs, agent, _ = load_run(run_dir, 1, seed=seed)
     obs, _ = envs.reset(seed=seed)
-    level = envs.envs[0].unwrapped
-    if not hasattr(level, "door_b"):
+    if not hasattr(envs.envs[0].unwrapped, "door_b"):
         raise SystemExit(f"{run_dir}: not a BabyAI level with a choice state")
     records = []  # (p correct turn, p wrong turn, took a turn, took the correct one, success)
-    state, start = agent.initial_state(1), torch.ones(1, dtype=torch.bool)
     finished, choice = 0, None
-    with torch.no_grad():
-        while finished < episodes:
-            inputs = torch.as_tensor(obs, dtype=torch.float32)
-            logits, _, state = agent.step(inputs, state, start)
-            action = int(torch.distributions.Categorical(logits=logits).sample()[0])
-            turn = correct_turn(level) if choice is None else None
-            if turn is not None:
-                probs = torch.softmax(logits[0], -1)
-                choice = (float(probs[turn]), float(probs[1 - turn]), action in (LEFT, RIGHT))
-                choice += (action == turn,)
-            obs, reward, terminated, truncated, _ = envs.step(np.array([action]))
-            start = torch.as_tensor(terminated | truncated)
-            if start[0]:
-                if choice is not None:
-                    records.append((*choice, bool(reward[0] > 0)))
-                finished, choice = finished + 1, None
+    for turn, logits, action, reward, ended in sampled_steps(envs, agent, obs, correct_turn):
+        if turn is not None and choice is None:
+            probs = torch.softmax(logits, -1)
+            choice = (float(probs[turn]), float(probs[1 - turn]), action in (LEFT, RIGHT))
+            choice += (action == turn,)
+        if ended:
+            if choice is not None:
+                records.append((*choice, reward > 0))
+            finished, choice = finished + 1, None
+            if finished == episodes:
+                break
     envs.close()
     if not records:
         raise SystemExit(f"{run_dir}: no episode reached the choice state in {episodes}")

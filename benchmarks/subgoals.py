@@ -20,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import torch
+from choice_state import sampled_steps
 
 from thci.rl.evaluate import load_run
 
@@ -39,12 +39,12 @@ def _box_opened(level) -> bool:
 def subgoals(level) -> dict[str, Callable[[object], bool]]:
     """The level's sub-goals, each a test of the current state, in the order they come."""
     goals: dict[str, Callable[[object], bool]] = {"in_A": lambda lv: _in_room(lv, lv.room_a)}
-    if hasattr(level, "door_a") and hasattr(level, "key_a"):  # level 4
+    if hasattr(level, "key_a"):  # level 4: key a opens A, where key b lies
         goals["door_A_open"] = lambda lv: lv.door_a.is_open
         goals["carry_key_b"] = lambda lv: lv.carrying is lv.key_b
-    elif hasattr(level, "box"):  # level 3
-        goals["box_opened"] = _box_opened
-    if hasattr(level, "key") and not hasattr(level, "key_a"):  # levels 2-3
+    elif hasattr(level, "key"):  # levels 2-3 (level 3 hides the key in a box)
+        if hasattr(level, "box"):
+            goals["box_opened"] = _box_opened
         goals["carry_key_b"] = lambda lv: lv.carrying is lv.key
     goals["door_B_open"] = lambda lv: lv.door_b.is_open
     goals["in_B"] = lambda lv: _in_room(lv, lv.room_b)
@@ -59,27 +59,23 @@ def play(run_dir: Path, episodes: int, seed: int) -> dict:
     if not hasattr(level, "door_b"):
         raise SystemExit(f"{run_dir}: not a BabyAI level of thci (no door B)")
     goals = subgoals(level)
+
+    def reached_now(lv) -> set[str]:
+        return {name for name, test in goals.items() if test(lv)}
+
     counts = dict.fromkeys([*goals, "success"], 0)
-    lengths = []
+    lengths: list[int] = []
     reached: set[str] = set()
-    state, start = agent.initial_state(1), torch.ones(1, dtype=torch.bool)
-    finished, length = 0, 0
-    with torch.no_grad():
-        while finished < episodes:
-            logits, _, state = agent.step(torch.as_tensor(obs, dtype=torch.float32), state, start)
-            action = int(torch.distributions.Categorical(logits=logits).sample()[0])
-            obs, reward, terminated, truncated, _ = envs.step(np.array([action]))
-            length += 1
-            start = torch.as_tensor(terminated | truncated)
-            if start[0]:  # the env has reset already: score what the step led to
-                reached |= {"success"} if reward[0] > 0 else set()
-                for name in reached:
-                    counts[name] += 1
-                lengths.append(length)
-                reached, finished, length = set(), finished + 1, 0
-            else:
-                level = envs.envs[0].unwrapped
-                reached |= {name for name, test in goals.items() if test(level)}
+    length = 0
+    for now, _, _, reward, ended in sampled_steps(envs, agent, obs, reached_now):
+        reached, length = reached | now, length + 1
+        if ended:
+            for name in reached | ({"success"} if reward > 0 else set()):
+                counts[name] += 1
+            lengths.append(length)
+            reached, length = set(), 0
+            if len(lengths) == episodes:
+                break
     envs.close()
     return {
         "episodes": episodes,

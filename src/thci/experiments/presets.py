@@ -138,16 +138,23 @@ BABYAI_LATE_CI = {"ci_min_rewarded_episodes": 500}
 BABYAI_VIEW_COUNTS = {"count_key": None, "count_beta": 0.005}
 
 
+def _babyai_level(env: str, steps: int) -> dict[str, Any]:
+    """Overrides of BABYAI_TRAIN for one BabyAI level: its budget, CI's late start on L2-L4
+    and the bonus for new views on L3-L4."""
+    level = PAPER_BABYAI.index(env)
+    return {
+        "total_steps": steps,
+        **(BABYAI_LATE_CI if level >= 1 else {}),
+        **(BABYAI_VIEW_COUNTS if level >= 2 else {}),
+    }
+
+
 def _babyai_budgets(small: int, large: int) -> dict[str, dict]:
     """Per-env overrides of the BabyAI presets: `small` steps for L1, `large` for L2-L4 (T-HCI
-    solved L2 at 2.34M / 3.14M / 2.95M steps), CI's late start on L2-L4 and the bonus for new
-    views on L3-L4."""
-    overrides = {PAPER_BABYAI[0]: {"total_steps": small}}
-    for env in PAPER_BABYAI[1:]:
-        overrides[env] = {"total_steps": large, **BABYAI_LATE_CI}
-    for env in PAPER_BABYAI[2:]:
-        overrides[env].update(BABYAI_VIEW_COUNTS)
-    return overrides
+    solved L2 at 2.34M / 3.14M / 2.95M steps); see `_babyai_level`."""
+    return {
+        env: _babyai_level(env, small if env == PAPER_BABYAI[0] else large) for env in PAPER_BABYAI
+    }
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -215,12 +222,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "train": {"stop_on_solve": True},
         "env_overrides": {
             PAPER_MAZE[2]: {"total_steps": 1_000_000, **MAZE_HARD_TRAIN},
-            PAPER_BABYAI[2]: {
-                "total_steps": 3_000_000,
-                **BABYAI_TRAIN,
-                **BABYAI_LATE_CI,
-                **BABYAI_VIEW_COUNTS,
-            },
+            PAPER_BABYAI[2]: {**BABYAI_TRAIN, **_babyai_level(PAPER_BABYAI[2], 3_000_000)},
         },
     },
     "ablation-quick": {
