@@ -28,7 +28,7 @@ from saved_ci import load_ci_loop
 
 from thci.causal.predictor import EffectEstimator, PredictorConfig
 from thci.causal.replay import pad_episodes
-from thci.causal.search import t_hci
+from thci.causal.search import DEFAULT_Z, t_hci
 from thci.causal.synthetic import generate_planted_episodes
 
 RESULTS = Path(__file__).parent / "results"
@@ -65,9 +65,9 @@ def run_rows(run_dir: Path, xis: list[float], target: str) -> list[dict]:
     fit = time.perf_counter() - started
     steps = int(np.sum(pool.valid))
     name = f"{config.env} {config.method} s{config.seed} ({len(pool.lengths)} ep., {steps} steps)"
+    z = config.ci_z or DEFAULT_Z
     return [
-        _row(name, xi, loop.describe(t_hci(estimator, z=config.ci_z, xi=xi).causal), truth, fit)
-        for xi in xis
+        _row(name, xi, loop.describe(t_hci(estimator, z=z, xi=xi).causal), truth, fit) for xi in xis
     ]
 
 

@@ -189,6 +189,22 @@ def test_the_loop_keeps_cell_values_across_rounds_and_checkpoints():
     assert restored.summary()["causal_cell_values"] == [list(CUE_A), list(CUE_B)]
 
 
+@pytest.mark.parametrize(
+    ("units", "ci_z", "expected"),
+    [("cells", None, 9), ("cells", 3, 3), ("observations", None, 4), ("observations", 6, 6)],
+)
+def test_z_defaults_to_testing_each_cell_value_alone(units: str, ci_z, expected: int):
+    """Without --ci-z, a cell-value round splits into as many parts as the pool has values
+    (floor, two cues, two balls, four keys: 9), an observation round into the paper's 4."""
+    config = TrainConfig(method="t-hci", ci_units=units, cell_layout=LAYOUT, ci_z=ci_z)
+    loop = CausalInferenceLoop(config, gym.spaces.Box(0, 300, (13,)), 3, 1, Gate(13))
+    episodes, _, observations = cue_pool(20)
+    for episode in episodes:
+        loop.pool.add(episode)
+    loop.pool.observations = dict(observations)
+    assert loop.make_job(loop.pool.arrays()).z == expected
+
+
 def test_cell_units_need_the_reward_target():
     with pytest.raises(ThciError, match="--ci-units cells predicts the reward"):
         TrainConfig(ci_units="cells", ci_target="dynamics").validate()

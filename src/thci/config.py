@@ -213,8 +213,10 @@ class TrainConfig:
     the memory stayed empty for good."""
     ci_pool_episodes: int = 2000
     """Capacity of the replay pool (whole episodes, oldest dropped first)."""
-    ci_z: int = 4
-    """Z: parts each candidate set is split into (T-HCI)."""
+    ci_z: int | None = None
+    """Z: parts each candidate set is split into (T-HCI). Default: 4 with --ci-units
+    observations; with --ci-units cells the number of cell values in the round's pool, so each
+    is tested alone first (Z 4 on a BabyAI-L2 pool missed the rarely seen blue wall)."""
     ci_min_support: int = 10
     """T-HCI splits a part with an effect only while it occurs in at least this many held-out
     episodes; rarer parts are kept whole (thci.causal.search.DEFAULT_MIN_SUPPORT)."""
@@ -232,8 +234,8 @@ class TrainConfig:
     wherever it is seen; a view stays in memory iff it shows a kept cell value). On BabyAI
     views the signpost is spread over hundreds of rare codes, but is 5 cell values seen in
     hundreds of episodes (thci.causal.units, docs/babyai.md). Needs --ci-target reward.
-    Cell values are few (28 on BabyAI-L2), so --ci-z at least their number (each tested alone
-    first) avoids parts whose common values (floor, keys) dilute a rare one's effect."""
+    Cell values are few (28 on BabyAI-L2): testing each alone first (--ci-z's default here)
+    avoids parts whose common values (floor, keys) dilute a rare one's effect."""
     ci_unit_steps: int = 1000
     """Adam steps of the cell-value predictor's first fit (--ci-units cells; later rounds
     continue it for --ci-warm-steps). A BabyAI-L2 pool's signpost showed no effect after 400
@@ -398,7 +400,7 @@ class TrainConfig:
                 f"--ci-units cells predicts the reward: use --ci-target reward (got "
                 f"{self.ci_target})"
             )
-        if self.ci_z < 2:
+        if self.ci_z is not None and self.ci_z < 2:
             raise ThciError(f"--ci-z must be at least 2, got {self.ci_z}")
         if self.ci_xi < 0:
             raise ThciError(f"--ci-xi must be >= 0, got {self.ci_xi}")

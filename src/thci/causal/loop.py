@@ -448,6 +448,9 @@ class CausalInferenceLoop:
         if cfg.ci_units == "cells":
             layout = cfg.cell_layout or DEFAULT_CELL_LAYOUT
             units = {c: cell_units(self.pool.observations[c], layout) for c in codes}
+        z = cfg.ci_z or DEFAULT_Z
+        if cfg.ci_z is None and units:  # cell values: each tested alone first
+            z = max(2, len(np.unique(np.concatenate(list(units.values())))))
         return CIJob(
             pool=pool,
             observations={c: self.pool.observations[c] for c in codes},
@@ -455,7 +458,7 @@ class CausalInferenceLoop:
             gate=self.gate.spec,
             num_actions=self.num_actions,
             method=cfg.method,
-            z=cfg.ci_z,
+            z=z,
             xi=cfg.ci_xi,
             predictor=PredictorConfig(
                 target=cfg.ci_target,
