@@ -119,6 +119,7 @@ informative (a path a trained policy takes only in one variant) shows an effect 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -1066,6 +1067,25 @@ class EffectEstimate:
     lower: np.ndarray
     upper: np.ndarray
 
+    @staticmethod
+    def in_passes(
+        one_pass: Callable[[list[Intervention], np.ndarray], EffectEstimate],
+        interventions: list[Intervention],
+        eliminated: np.ndarray,
+        arms_per_pass: int,
+    ) -> EffectEstimate:
+        """`one_pass` on `arms_per_pass` interventions at a time (each pass with its own
+        control arm), joined: memory stays bounded when a tree level tests hundreds of parts."""
+        pieces = [
+            one_pass(interventions[begin : begin + arms_per_pass], eliminated)
+            for begin in range(0, len(interventions), arms_per_pass)
+        ]
+        if not pieces:
+            return EffectEstimate(np.zeros(0), np.zeros(0), np.zeros(0))
+        return EffectEstimate(
+            *(np.concatenate([getattr(p, f) for p in pieces]) for f in ("ate", "lower", "upper"))
+        )
+
 
 @dataclass(frozen=True)
 class Intervention:
@@ -1278,22 +1298,10 @@ class EffectEstimator:
         return build
 
     def ate(self, interventions: list[Intervention], eliminated: np.ndarray) -> EffectEstimate:
-        """ATE bounds of each intervention given the eliminated set O^w (dense ids).
-
-        Interventions are evaluated `arms_per_pass` at a time (each pass with its own control
-        arm), so memory stays bounded when a tree level of a large Ô tests hundreds of parts.
-        """
-        chunk = self.config.arms_per_pass
-        pieces = [
-            self._ate_pass(interventions[begin : begin + chunk], eliminated)
-            for begin in range(0, len(interventions), chunk)
-        ]
-        if not pieces:
-            return EffectEstimate(np.zeros(0), np.zeros(0), np.zeros(0))
-        return EffectEstimate(
-            np.concatenate([p.ate for p in pieces]),
-            np.concatenate([p.lower for p in pieces]),
-            np.concatenate([p.upper for p in pieces]),
+        """ATE bounds of each intervention given the eliminated set O^w (dense ids),
+        `arms_per_pass` interventions at a time."""
+        return EffectEstimate.in_passes(
+            self._ate_pass, interventions, eliminated, self.config.arms_per_pass
         )
 
     def _ate_pass(

@@ -406,15 +406,8 @@ class UnitEffectEstimator:
             raise ThciError(
                 "fine-grained CI (one history step at a time) needs --ci-units observations"
             )
-        chunk = self.config.arms_per_pass
-        pieces = [
-            self._ate_pass(interventions[begin : begin + chunk], eliminated)
-            for begin in range(0, len(interventions), chunk)
-        ]
-        if not pieces:
-            return EffectEstimate(np.zeros(0), np.zeros(0), np.zeros(0))
-        return EffectEstimate(
-            *(np.concatenate([getattr(p, f) for p in pieces]) for f in ("ate", "lower", "upper"))
+        return EffectEstimate.in_passes(
+            self._ate_pass, interventions, eliminated, self.config.arms_per_pass
         )
 
     def _ate_pass(
