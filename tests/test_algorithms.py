@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from thci.config import TrainConfig
+from thci.errors import ThciError
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
 from thci.rl.dmc import DMC, epsilon_at, monte_carlo_returns
@@ -187,3 +188,12 @@ def test_dmc_epsilon_decays_linearly_then_stays():
     assert epsilon_at(config, 1000) == pytest.approx(0.1)
     assert epsilon_at(config, 10**6) == pytest.approx(0.1)
     assert epsilon_at(TrainConfig(algo="dmc", dmc_epsilon_decay=0), 0) == 0.1  # no decay
+
+
+def test_only_ppo_needs_a_minibatch_per_environment():
+    """PPO splits a rollout's sequences into --num-minibatches groups, so it needs at least as
+    many environments; A2C (one batch) and DMC (its own episode batches) do not."""
+    with pytest.raises(ThciError, match="--num-minibatches \\(8\\) cannot exceed --num-envs"):
+        TrainConfig(algo="ppo", num_envs=4, num_minibatches=8).validate()
+    for algo in ("a2c", "dmc"):
+        TrainConfig(algo=algo, num_envs=4, num_minibatches=8).validate()

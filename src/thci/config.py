@@ -404,7 +404,7 @@ class TrainConfig:
             raise ThciError(f"--ci-z must be at least 2, got {self.ci_z}")
         if self.ci_xi < 0:
             raise ThciError(f"--ci-xi must be >= 0, got {self.ci_xi}")
-        if self.num_minibatches > self.num_envs:
+        if self.algo == "ppo" and self.num_minibatches > self.num_envs:  # a2c, dmc: unused
             raise ThciError(
                 f"--num-minibatches ({self.num_minibatches}) cannot exceed --num-envs "
                 f"({self.num_envs}): each minibatch needs whole sequences"
