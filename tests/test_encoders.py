@@ -135,6 +135,25 @@ def test_cell_encoder_reads_entries_by_place_and_whole_cells_pooled_over_places(
     assert torch.allclose(encoder(obs.float()), expected, atol=1e-6)
 
 
+def test_cell_encoder_pooling_has_the_gradient_of_relu_then_max_over_looked_up_cells():
+    torch.manual_seed(0)
+    categories = [3] + [5, 4, 2] * 4  # a leading entry, four cells
+    encoder = CellEncoder(13, (1, 4, 3), categories, out_size=8)
+    # (2, 3) leading dims; repeated cell values in a view, and views sharing values.
+    obs = torch.stack([torch.randint(0, n, (2, 3)) for n in categories], dim=-1).float()
+    obs[0, 0, 4:7] = obs[0, 0, 1:4]
+    weights = torch.randn(2, 3, 8)
+    (encoder.pooled(obs) * weights).sum().backward()
+    fast = encoder.cell_embedding.weight.grad.clone()
+    encoder.zero_grad()
+    looked_up = encoder.cell_embedding(encoder.cell_categories(obs))  # (2, 3, 4 cells, 8)
+    explicit = torch.relu(looked_up).amax(dim=-2)
+    (explicit * weights).sum().backward()
+    assert encoder.pooled(obs).shape == (2, 3, 8)
+    assert torch.allclose(encoder.pooled(obs), explicit)
+    assert fast.abs().sum() > 0 and torch.allclose(fast, encoder.cell_embedding.weight.grad)
+
+
 def test_cell_encoder_tells_a_green_wall_from_a_green_door_where_per_entry_one_hot_cannot():
     # A per-channel one-hot layer is additive in object and colour: the change from blue to
     # green is the same vector for a wall and for a door, so no linear readout can single out
