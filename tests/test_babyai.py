@@ -442,7 +442,8 @@ def test_observations_are_minigrids_own_bit_for_bit(level):
     rng = np.random.default_rng(level)
     carried = seen_open_door = 0
     for episode in range(12):
-        env.reset(seed=episode)
+        obs, _ = env.reset(seed=episode)
+        assert np.array_equal(obs["image"], MiniGridEnv.gen_obs(env)["image"])
         expert = BabyAIExpert(env)
         done = False
         while not done:
