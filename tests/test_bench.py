@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from thci.cli import main
+from thci.config import TrainConfig
 from thci.errors import ThciError
 from thci.experiments import bench
 from thci.experiments.bench import run_bench
@@ -109,6 +110,30 @@ def test_method_not_in_this_install_is_noted_and_left_out(tmp_path, monkeypatch,
     assert [r.config.method for r in runs] == ["lstm"]
     with pytest.raises(ThciError, match="unknown methods"):
         bench.plan(grid_from_dict("g", {**TINY, "methods": ["lstmm"]}), tmp_path)
+
+
+def test_overrides_apply_per_env_then_algo_then_method():
+    grid = grid_from_dict(
+        "g",
+        {
+            **TINY,
+            "algos": ["ppo", "a2c"],
+            "env_overrides": {TINY["envs"][1]: {"ent_coef": 0.05, "total_steps": 512}},
+            "algo_overrides": {"a2c": {"ent_coef": 0.02, "num_steps": 64}},
+            "method_overrides": {"t-hci": {"num_steps": 16}},
+        },
+    )
+    settings = {
+        (c.env[-5:-3], c.algo, c.method): (c.ent_coef, c.num_steps, c.total_steps)
+        for c in grid.configs()
+    }
+    default_ent = TrainConfig().ent_coef
+    assert settings[("L1", "ppo", "lstm")] == (default_ent, 32, 256)
+    assert settings[("L2", "ppo", "lstm")] == (0.05, 32, 512)
+    assert settings[("L2", "a2c", "lstm")] == (0.02, 64, 512)  # the algo's wins over the env's
+    assert settings[("L2", "a2c", "t-hci")] == (0.02, 16, 512)  # the method's over the algo's
+    with pytest.raises(ThciError, match="algo_overrides names 'dmc', which is not in the grid"):
+        grid_from_dict("g", {**TINY, "algo_overrides": {"dmc": {"ent_coef": 0.1}}})
 
 
 def test_presets_name_the_papers_methods_and_are_valid():

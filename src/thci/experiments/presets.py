@@ -2,8 +2,9 @@
 
 A grid is the cross product ``envs × methods × algos × seeds``. Every run of it is an ordinary
 `thci train` run: ``train`` holds TrainConfig fields shared by all runs, ``env_overrides`` the
-fields one environment needs on top (e.g. exploration for Maze levels 3-4) and
-``method_overrides`` those of one method (they win over the env's, e.g. a smaller budget for a
+fields one environment needs on top (e.g. exploration for Maze levels 3-4), ``algo_overrides``
+those of one algorithm (e.g. A2C's smaller entropy bonus; they win over the env's) and
+``method_overrides`` those of one method (they win over both, e.g. a smaller budget for a
 slow method). The same structure is read from a TOML or YAML file::
 
     envs = ["thci/PaperMaze-L1-v0", "thci/PaperMaze-L2-v0"]
@@ -17,6 +18,9 @@ slow method). The same structure is read from a TOML or YAML file::
 
     [env_overrides."thci/PaperMaze-L2-v0"]
     total_steps = 200000
+
+    [algo_overrides.a2c]
+    ent_coef = 0.01
 
     [method_overrides.t-hci]
     ci_every = 4096
@@ -245,6 +249,7 @@ class Grid:
     seeds: tuple[int, ...]
     train: dict[str, Any]
     env_overrides: dict[str, dict[str, Any]]
+    algo_overrides: dict[str, dict[str, Any]]
     method_overrides: dict[str, dict[str, Any]]
 
     def configs(self) -> list[TrainConfig]:
@@ -259,6 +264,7 @@ class Grid:
                 **{
                     **self.train,
                     **self.env_overrides.get(env, {}),
+                    **self.algo_overrides.get(algo, {}),
                     **self.method_overrides.get(method, {}),
                 },
             )
@@ -273,9 +279,13 @@ def available_methods() -> tuple[str, ...]:
     return get_args(Method)
 
 
+# A grid's override tables, each keyed by names from one of its lists; later ones win.
+OVERRIDES = {"env_overrides": "envs", "algo_overrides": "algos", "method_overrides": "methods"}
+
+
 def grid_from_dict(name: str, data: dict[str, Any]) -> Grid:
     """Validate a grid description (a preset or a parsed file); ThciError on any mistake."""
-    known = {"envs", "methods", "algos", "seeds", "train", "env_overrides", "method_overrides"}
+    known = {"envs", "methods", "algos", "seeds", "train", *OVERRIDES}
     unknown = sorted(set(data) - known)
     if unknown:
         raise ThciError(f"grid {name}: unknown keys {unknown}; a grid has {sorted(known)}")
@@ -295,7 +305,7 @@ def grid_from_dict(name: str, data: dict[str, Any]) -> Grid:
     train = _check_fields(name, "train", data.get("train", {}))
     overrides = {
         key: _check_overrides(name, key, data.get(key, {}), lists[list_key])
-        for key, list_key in (("env_overrides", "envs"), ("method_overrides", "methods"))
+        for key, list_key in OVERRIDES.items()
     }
     return Grid(
         name=name,
@@ -305,6 +315,7 @@ def grid_from_dict(name: str, data: dict[str, Any]) -> Grid:
         seeds=lists["seeds"],
         train=train,
         env_overrides=overrides["env_overrides"],
+        algo_overrides=overrides["algo_overrides"],
         method_overrides=overrides["method_overrides"],
     )
 
@@ -312,7 +323,7 @@ def grid_from_dict(name: str, data: dict[str, Any]) -> Grid:
 def _check_overrides(
     name: str, key: str, overrides: Any, names: tuple[str, ...]
 ) -> dict[str, dict[str, Any]]:
-    """`key` (env_overrides or method_overrides): settings per name, each name in `names`."""
+    """`key` (one of OVERRIDES): settings per name, each name in `names`."""
     if not isinstance(overrides, dict):
         raise ThciError(f"grid {name}: '{key}' must be a table of settings per name")
     for which in overrides:
