@@ -12,7 +12,7 @@ import torch
 from test_discretize import random_babyai_views
 
 from thci.causal.discretize import make_discretizer
-from thci.causal.gate import Gate, GateSpec
+from thci.causal.gate import CellSetNet, Gate, GateSpec
 from thci.causal.loop import (
     CausalInferenceLoop,
     CIOutcome,
@@ -363,6 +363,27 @@ def test_cell_set_gate_is_a_function_of_the_set_of_cells():
     twice = torch.cat((cells[:, [2, 0, 1, 1]].reshape(6, 12), tail), 1)
     assert torch.allclose(gate(once), gate(twice))
     assert not torch.allclose(gate(once), gate(obs))  # c3 is gone from the set
+
+
+def test_cell_set_gate_pools_a_table_of_every_cell_value_as_it_pools_the_cells_in_view():
+    torch.manual_seed(0)
+    gate = GateSpec(3 * 4 + 2, [5, 4, 3] * 4 + [2, 2], cell_layout=(0, 4, 3)).build()
+    (net,) = [m for m in gate.modules() if isinstance(m, CellSetNet)]
+    assert net.values is not None and net.values.count == 5 * 4 * 3
+    obs = torch.randint(0, 5, (2, 6, 14)).float()
+    obs[0, 0, 3:6] = obs[0, 0, :3]  # a value twice in one view
+    obs[1, 1, :3] = torch.tensor([9.0, 7.0, -1.0])  # out of range: clamped on both paths
+    weights = torch.randn(2, 6)
+    outputs, grads = [], []
+    for values in (net.values, None):
+        net.values = values
+        gate.zero_grad()
+        out = gate(obs)
+        (out * weights).sum().backward()
+        outputs.append(out)
+        grads.append(net.cell.embedding.weight.grad.clone())
+    assert outputs[0].shape == (2, 6) and torch.equal(outputs[0], outputs[1])
+    assert grads[0].abs().sum() > 0 and torch.allclose(grads[0], grads[1], atol=1e-6)
 
 
 def test_cell_set_gate_fitted_on_one_view_per_code_decides_unseen_babyai_views():
