@@ -163,6 +163,14 @@ def test_presets_name_the_papers_methods_and_are_valid():
     assert all(c.exploration == "episodic-count" and c.count_memory for c in comparison)
     budgets = {c.method: c.total_steps for c in level3}
     assert budgets["lstm"] == 300_000 and budgets["wmg"] == 4_000  # the method's budget wins
+    algos = {c.algo: c for c in load_grid("babyai-algos").configs() if c.seed == 1}
+    assert set(algos) == {"ppo", "a2c", "dmc"}
+    assert (algos["ppo"].ent_coef, algos["a2c"].ent_coef, algos["dmc"].ent_coef) == (
+        0.03,
+        0.01,
+        0.03,
+    )
+    assert algos["a2c"].num_steps == 128 and algos["dmc"].dmc_buffer_episodes == 2048
 
 
 @pytest.mark.parametrize(
