@@ -66,6 +66,8 @@ class CellSetNet(nn.Module):
             values = CellValues(channels)
             if values.count <= MAX_TABLE_CELL_VALUES:
                 self.values = values
+                # Every possible cell, built once: the table's rows are its features.
+                self.register_buffer("every_cell", values.every_cell(), persistent=False)
         self.rest = nn.Linear(self.layout.rest_size(observation_size), hidden_size, bias=False)
         self.out = nn.Sequential(nn.ReLU(), nn.Linear(hidden_size, 1))
 
@@ -75,7 +77,7 @@ class CellSetNet(nn.Module):
         if self.values is None:
             pooled = torch.relu(self.cell(cells)).max(dim=-2).values  # (..., H)
         else:  # the same, from the features of every possible cell value (minigrid: 198)
-            table = torch.relu(self.cell(self.values.every_cell()))
+            table = torch.relu(self.cell(self.every_cell))
             pooled = max_over_cells(self.values(cells), table)
         return self.out(pooled + self.rest(rest))
 

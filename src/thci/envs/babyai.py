@@ -57,7 +57,6 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from minigrid.core.constants import COLOR_NAMES, COLOR_TO_IDX, OBJECT_TO_IDX, STATE_TO_IDX
-from minigrid.core.grid import Grid
 from minigrid.core.roomgrid import RoomGrid, reject_next_to
 from minigrid.core.world_object import Ball, Box, Door, Key, Wall, WorldObj
 from minigrid.envs.babyai.core.roomgrid_level import RejectSampling, RoomGridLevel
@@ -189,7 +188,7 @@ class BabyAILevel(RoomGridLevel):
         self.action_space = spaces.Discrete(len(ACTION_NAMES))
         self.signpost_seen = False
         # The grid's cell codes, cached for gen_obs (see there); None: rebuild from the grid.
-        self._grid_codes: tuple[Grid, np.ndarray, np.ndarray] | None = None
+        self._grid_codes: tuple[np.ndarray, np.ndarray] | None = None
         self._changed_cell: tuple[int, int] | None = None
         self._expert: BabyAIExpert | None = None
 
@@ -329,7 +328,7 @@ class BabyAILevel(RoomGridLevel):
                 f"invalid action {action!r}: expected an integer in [0, {len(ACTION_NAMES)}) "
                 f"({', '.join(f'{i} = {name}' for i, name in enumerate(ACTION_NAMES))})"
             )
-        if action in _GRID_ACTIONS and self._grid_codes is not None:
+        if action in _GRID_ACTIONS:
             # These change at most the cell in front (a key taken, a box opened, a door
             # unlocked), and the agent does not move: gen_obs re-encodes that cell.
             self._changed_cell = self.front_pos
@@ -369,7 +368,7 @@ class BabyAILevel(RoomGridLevel):
         (what minigrid shows outside the grid). Built once per layout; afterwards only the cell
         a pickup, drop or toggle acted on is re-encoded (:meth:`step`)."""
         pad = self.agent_view_size
-        if self._grid_codes is None or self._grid_codes[0] is not self.grid:
+        if self._grid_codes is None:  # a new layout (reset)
             width, height = self.grid.width, self.grid.height
             codes = np.empty((width + 2 * pad, height + 2 * pad, 3), np.uint8)
             codes[:] = _WALL.encode()
@@ -378,9 +377,9 @@ class BabyAILevel(RoomGridLevel):
                 x, y = index % width + pad, index // width + pad
                 codes[x, y] = _EMPTY_CODE if cell is None else cell.encode()
                 see[x, y] = cell is None or cell.see_behind()
-            self._grid_codes = (self.grid, codes, see)
+            self._grid_codes = (codes, see)
             self._changed_cell = None
-        _, codes, see = self._grid_codes
+        codes, see = self._grid_codes
         if self._changed_cell is not None:
             x, y = self._changed_cell
             cell = self.grid.get(x, y)
