@@ -8,7 +8,7 @@ from thci.config import TrainConfig
 from thci.errors import ThciError
 from thci.memory import make_memory
 from thci.rl.agent import ActorCritic
-from thci.rl.dmc import DMC, epsilon_at, monte_carlo_returns
+from thci.rl.dmc import DMC, epsilon_at, monte_carlo_returns, n_step_targets
 from thci.rl.episodes import EpisodeAssembler
 from thci.rl.ppo import A2C
 from thci.rl.rollout import Rollout
@@ -87,6 +87,21 @@ def test_dmc_regresses_q_of_taken_actions_on_whole_episode_returns():
     taken = q[0, torch.arange(3), actions[:3, 0]]
     returns = torch.tensor([1.25, 2.5, 3.0])
     assert losses["q_loss"] == pytest.approx(0.5 * (taken - returns).pow(2).mean().item(), rel=1e-5)
+
+
+def test_n_step_targets_bootstrap_from_q_of_the_action_taken_n_steps_later():
+    # rewards [0, 1, 3] with gamma 0.5 give G = [1.25, 2.5, 3]; a second episode of one step
+    returns = torch.tensor([[1.25, 2.5, 3.0], [4.0, 0.0, 0.0]])
+    valid = torch.tensor([[True, True, True], [True, False, False]])
+    q = torch.tensor([[10.0, 20.0, 30.0], [40.0, 0.0, 0.0]], requires_grad=True)
+    one = n_step_targets(returns, q, valid, 0.5, 1)
+    # by hand: r_0 + γ Q_1 = 0 + 10, r_1 + γ Q_2 = 1 + 15, then the episodes' last steps: G
+    assert one.tolist() == [[10.0, 16.0, 3.0], [4.0, 0.0, 0.0]]
+    two = n_step_targets(returns, q, valid, 0.5, 2)
+    assert two[0].tolist() == [0 + 0.5 * 1 + 0.25 * 30, 2.5, 3.0]
+    assert not one.requires_grad  # the bootstrap is a target, not a path for gradients
+    for monte_carlo in (0, 3, 10):  # no bootstrap, or none within the episode
+        assert torch.equal(n_step_targets(returns, q, valid, 0.5, monte_carlo), returns)
 
 
 def _one_step_episodes(rewards: list[float], first: int = 0) -> Rollout:

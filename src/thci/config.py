@@ -122,6 +122,11 @@ class TrainConfig:
     so the greedy policy does not act on a Q fitted to the old memory (0: none). Evidence is
     one seed each way on BabyAI-L1 (docs/babyai.md): without, a dip around the third gate never
     recovered; with, a similar dip recovered within 6k steps."""
+    dmc_n_step: int = 0
+    """0: DMC's Monte-Carlo targets (the paper). N > 0: bootstrapped N-step targets instead,
+    G_t - γ^N G_{t+N} + γ^N Q(h_{t+N}, a_{t+N}), which stops being Monte Carlo. On BabyAI-L1's
+    buffer the Monte-Carlo loss left Q's fit of the choice at R² 0.13 where N = 1 reached 0.60
+    (docs/babyai.md, "Why DMC's Q does not read the signpost")."""
     dmc_gradient_steps: int = 16
     """DMC's gradient steps per rollout (on BabyAI-L1, 4 stayed at random play for 125k steps;
     16 reached the memoryless optimum by 125k)."""
@@ -380,6 +385,8 @@ class TrainConfig:
         for name in ("dmc_buffer_episodes", "dmc_batch_episodes", "dmc_gradient_steps"):
             if getattr(self, name) < 1:
                 raise ThciError(f"--{_flag(name)} must be >= 1, got {getattr(self, name)}")
+        if self.dmc_n_step < 0:
+            raise ThciError(f"--dmc-n-step must be >= 0 (0: Monte Carlo), got {self.dmc_n_step}")
         if self.dmc_refit_steps < 0:
             raise ThciError(f"--dmc-refit-steps must be >= 0, got {self.dmc_refit_steps}")
         if self.dmc_epsilon_decay < 0:

@@ -13,6 +13,10 @@ runs the memory over each from its first step and a zero state, and minimizes
     L = mean over steps of ½ (Q(h_t, a_t) − G_t)²,   G_t = Σ_{k≥0} γ^k r_{t+k},
 
 the return to the episode's end (intrinsic rewards included when exploration adds them).
+With ``--dmc-n-step N`` > 0 the target is bootstrapped N steps on instead (:func:`n_step_targets`),
+an option that leaves Monte Carlo: on BabyAI-L1 Q must read the signpost at the one choice step,
+and the Monte-Carlo targets of the ~97% of steps before it carry the choice's outcome, a guess
+no Q can predict there, which drowns that step's gradient (docs/babyai.md).
 
 Why a buffer: regressing on only the ~25 episodes of one rollout (BabyAI-L1, 16 envs × 128
 steps), Q overrated whatever the greedy action was (returns ×100 in that diagnostic: `right`
@@ -63,6 +67,35 @@ def monte_carlo_returns(rewards: torch.Tensor, valid: torch.Tensor, gamma: float
         running = rewards[:, t] + gamma * running
         returns[:, t] = running
     return returns
+
+
+def n_step_targets(
+    returns: torch.Tensor, q_taken: torch.Tensor, valid: torch.Tensor, gamma: float, n: int
+) -> torch.Tensor:
+    """Targets bootstrapped `n` steps on: G_t − γ^n G_{t+n} + γ^n Q(h_{t+n}, a_{t+n}), i.e. the
+    n rewards from t and then Q of the action taken n steps later (SARSA-style: the buffer's own
+    actions); G_t itself where the episode ends within n steps. n = 0 gives G_t (Monte Carlo).
+
+    Args:
+        returns: (E, L) Monte-Carlo returns G_t of E episodes, 0 on padding.
+        q_taken: (E, L) Q(h_t, a_t); gradients do not flow into the bootstrap.
+        valid: (E, L) bool, False on padding.
+        gamma: discount.
+        n: bootstrap horizon in steps (>= 0).
+
+    Returns:
+        (E, L) targets.
+    """
+    if n == 0:
+        return returns
+    later_returns = torch.zeros_like(returns)
+    later_q = torch.zeros_like(returns)
+    later_valid = torch.zeros_like(valid)
+    later_returns[:, :-n] = returns[:, n:]
+    later_q[:, :-n] = q_taken.detach()[:, n:]
+    later_valid[:, :-n] = valid[:, n:]
+    discount = gamma**n
+    return torch.where(later_valid, returns - discount * (later_returns - later_q), returns)
 
 
 def epsilon_at(config: TrainConfig, global_step: int) -> float:
@@ -139,8 +172,10 @@ class DMC:
             actions, _ = _padded([e["actions"] for e in batch])
             returns, _ = _padded([e["returns"] for e in batch])
             q_values, _ = agent.evaluate(obs, agent.initial_state(batch_size), valid)
-            q = q_values.gather(-1, actions.unsqueeze(-1)).squeeze(-1)[valid]
-            loss = 0.5 * (q - returns[valid]).pow(2).mean()
+            q_taken = q_values.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
+            targets = n_step_targets(returns, q_taken, valid, cfg.gamma, cfg.dmc_n_step)
+            q = q_taken[valid]
+            loss = 0.5 * (q - targets[valid]).pow(2).mean()
             if not torch.isfinite(loss):
                 raise ThciError(
                     "DMC loss became NaN/inf: lower --learning-rate or --max-grad-norm, "
