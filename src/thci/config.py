@@ -124,9 +124,10 @@ class TrainConfig:
     recovered; with, a similar dip recovered within 6k steps."""
     dmc_n_step: int = 0
     """0: DMC's Monte-Carlo targets (the paper). N > 0: bootstrapped N-step targets instead,
-    G_t - γ^N G_{t+N} + γ^N Q(h_{t+N}, a_{t+N}), which stops being Monte Carlo. On BabyAI-L1's
-    buffer the Monte-Carlo loss left Q's fit of the choice at R² 0.13 where N = 1 reached 0.60
-    (docs/babyai.md, "Why DMC's Q does not read the signpost")."""
+    G_t - γ^N G_{t+N} + γ^N Q(h_{t+N}, a_{t+N}), which stops being Monte Carlo. Refitting a
+    trained BabyAI-L1 checkpoint, Monte Carlo left Q's fit of the choice at R² 0.13 where N = 1
+    reached 0.60; online from scratch N = 1 still ended at the guess (0.50 at 2M steps;
+    docs/babyai.md, "Why DMC's Q does not read the signpost")."""
     dmc_gradient_steps: int = 16
     """DMC's gradient steps per rollout (on BabyAI-L1, 4 stayed at random play for 125k steps;
     16 reached the memoryless optimum by 125k)."""
