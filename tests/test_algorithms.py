@@ -68,9 +68,10 @@ def _agent() -> ActorCritic:
     return ActorCritic(3, 2, make_memory("lstm", 4, 8), 4)
 
 
-def test_dmc_regresses_q_of_taken_actions_on_whole_episode_returns():
+@pytest.mark.parametrize("n_step", [0, 1])
+def test_dmc_regresses_q_of_taken_actions_on_whole_episode_returns(n_step: int):
     agent = _agent()
-    config = TrainConfig(gamma=0.5, dmc_gradient_steps=1, max_grad_norm=1e9)
+    config = TrainConfig(gamma=0.5, dmc_gradient_steps=1, max_grad_norm=1e9, dmc_n_step=n_step)
     dmc = DMC(config, num_envs=1)
     obs = torch.randn(4, 1, 3)
     actions = torch.tensor([[1], [0], [1], [1]])
@@ -86,6 +87,8 @@ def test_dmc_regresses_q_of_taken_actions_on_whole_episode_returns():
     q, _, _ = agent(obs[:3, 0].unsqueeze(0), agent.initial_state(1))
     taken = q[0, torch.arange(3), actions[:3, 0]]
     returns = torch.tensor([1.25, 2.5, 3.0])
+    if n_step == 1:  # --dmc-n-step 1: r_t + γ Q(h_{t+1}, a_{t+1}), the last step's G
+        returns = torch.stack([0 + 0.5 * taken[1], 1 + 0.5 * taken[2], torch.tensor(3.0)])
     assert losses["q_loss"] == pytest.approx(0.5 * (taken - returns).pow(2).mean().item(), rel=1e-5)
 
 

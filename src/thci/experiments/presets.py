@@ -148,8 +148,9 @@ BABYAI_VIEW_COUNTS = {"count_key": None, "count_beta": 0.005}
 # at 0.10 at 4M steps (last 8 updates) and no round ever ran (rounds from 50 rewarded episodes,
 # at 2-6% success, kept nothing). Full, T-HCI learned as the LSTM does until its first round
 # (seed 1 at 3.30M, seed 2 at 2.47M), whose gate kept the five wall colours (TAIE 0), and ended
-# at 0.35 and 0.47 (LSTM: 0.46 and 0.00). Level 4 follows level 3 unmeasured (docs/babyai.md,
-# "Level 3: the full memory before the first gate").
+# at 0.35 / 0.47 / 0.05 over seeds 1-3 (seed 3 ran no round; LSTM: 0.46 / 0.00 / 0.48). Level 4
+# follows level 3: its seed 1 ran no round either and ended at 0.02 (LSTM 0.10; docs/babyai.md,
+# "Level 3: the full memory before the first gate", "Level 4 at the preset settings").
 BABYAI_FULL_START = {"ci_initial_memory": "full"}
 
 
