@@ -92,6 +92,54 @@ def test_dmc_regresses_q_of_taken_actions_on_whole_episode_returns(n_step: int):
     assert losses["q_loss"] == pytest.approx(0.5 * (taken - returns).pow(2).mean().item(), rel=1e-5)
 
 
+def test_dmc_target_network_holds_the_bootstrap_between_refreshes_and_resumes():
+    """--dmc-target-every 3: steps 0-2 bootstrap from the agent as it was before step 0, step 3
+    from the agent as it is then; a DMC restored from a checkpoint bootstraps the same way."""
+    import copy
+
+    config = TrainConfig(
+        gamma=0.5, dmc_gradient_steps=1, max_grad_norm=1e9, dmc_n_step=1, dmc_target_every=3
+    )
+    obs = torch.randn(3, 1, 3)
+    actions = torch.tensor([[1], [0], [1]])
+    rewards = torch.tensor([[0.0], [1.0], [3.0]])
+    episode = _rollout(obs, actions, rewards, torch.tensor([[False], [False], [True]]))
+    nothing_new = _rollout(obs[:1], actions[:1], rewards[:1], torch.tensor([[False]]))
+
+    def expected_loss(agent: ActorCritic, target: ActorCritic) -> float:
+        def taken(net: ActorCritic) -> torch.Tensor:
+            q, _, _ = net(obs[:, 0].unsqueeze(0), net.initial_state(1))
+            return q[0, torch.arange(3), actions[:, 0]]
+
+        online, frozen = taken(agent), taken(target).detach()
+        targets = torch.stack([0 + 0.5 * frozen[1], 1 + 0.5 * frozen[2], torch.tensor(3.0)])
+        return 0.5 * (online - targets).pow(2).mean().item()
+
+    agent = _agent()
+    optimizer = torch.optim.SGD(agent.parameters(), lr=0.5)
+    dmc = DMC(config, num_envs=1)
+    dmc.add(episode)  # one finished episode: every step fits it
+    snapshot = copy.deepcopy(agent)
+    for step in range(4):
+        if step == 3:  # refreshed: the agent after three steps
+            snapshot = copy.deepcopy(agent)
+        want = expected_loss(agent, snapshot)
+        got = dmc.update(agent, optimizer, nothing_new)["q_loss"]
+        assert got == pytest.approx(want, rel=1e-5), step
+        if step == 1:  # the online network has moved, so the two bootstraps now differ
+            assert want != pytest.approx(expected_loss(agent, agent), rel=1e-3)
+            resumed = DMC(config, num_envs=1)
+            resumed.load_state_dict(dmc.state_dict())
+            twin, twin_optimizer = copy.deepcopy(agent), copy.deepcopy(optimizer.state_dict())
+    # the restored DMC, two steps behind, follows the same schedule from the same target
+    twin_opt = torch.optim.SGD(twin.parameters(), lr=0.5)
+    twin_opt.load_state_dict(twin_optimizer)
+    for _ in range(2):
+        resumed.update(twin, twin_opt, nothing_new)
+    for a, b in zip(twin.parameters(), agent.parameters(), strict=True):
+        assert torch.allclose(a, b, atol=1e-6)
+
+
 def test_n_step_targets_bootstrap_from_q_of_the_action_taken_n_steps_later():
     # rewards [0, 1, 3] with gamma 0.5 give G = [1.25, 2.5, 3]; a second episode of one step
     returns = torch.tensor([[1.25, 2.5, 3.0], [4.0, 0.0, 0.0]])

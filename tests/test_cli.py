@@ -60,6 +60,7 @@ def assert_one_line_error(capsys, code: int, *fragments: str) -> None:
         (["--count-memory"], ["--count-memory", "--exploration"]),
         (["--cell-layout", "0", "0", "3"], ["--cell-layout", "three integers"]),
         (["--encoder", "grid"], ["--encoder grid", "--encoder flat"]),
+        (["--algo", "dmc", "--dmc-target-every", "8"], ["--dmc-target-every", "--dmc-n-step"]),
     ],
 )
 def test_bad_train_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, fragments):

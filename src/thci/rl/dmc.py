@@ -16,7 +16,10 @@ the return to the episode's end (intrinsic rewards included when exploration add
 With ``--dmc-n-step N`` > 0 the target is bootstrapped N steps on instead (:func:`n_step_targets`),
 an option that leaves Monte Carlo: on BabyAI-L1 Q must read the signpost at the one choice step,
 and the Monte-Carlo targets of the ~97% of steps before it carry the choice's outcome, a guess
-no Q can predict there, which drowns that step's gradient (docs/babyai.md).
+no Q can predict there, which drowns that step's gradient (docs/babyai.md). The bootstrap
+comes from the network being fitted, or with ``--dmc-target-every K`` from a copy of it
+refreshed every K gradient steps (DQN's target network), so the targets hold still between
+refreshes.
 
 Why a buffer: regressing on only the ~25 episodes of one rollout (BabyAI-L1, 16 envs × 128
 steps), Q overrated whatever the greedy action was (returns ×100 in that diagnostic: `right`
@@ -36,6 +39,7 @@ L1 no goal was reached in 120k steps at epsilon 0.1.
 
 from __future__ import annotations
 
+import copy
 from collections import deque
 
 import numpy as np
@@ -120,6 +124,9 @@ class DMC:
         self.assembler = EpisodeAssembler(num_envs)
         # Each episode: obs (L, D), actions (L,), returns (L,) — returns fixed when it ends.
         self.buffer: deque[dict[str, torch.Tensor]] = deque(maxlen=config.dmc_buffer_episodes)
+        self.gradient_steps = 0  # taken so far: when to refresh the target network
+        self.target: ActorCritic | None = None  # --dmc-target-every's copy of the agent
+        self._target_weights: dict[str, torch.Tensor] | None = None  # from a checkpoint
 
     def add(self, rollout: Rollout) -> int:
         """Move the episodes that ended in `rollout` into the buffer; returns how many ended."""
@@ -154,6 +161,7 @@ class DMC:
         """``--dmc-refit-steps`` gradient steps on the buffer alone, when the memory has just
         changed under Q (a new T-HCI gate): the greedy policy must not act on a Q fitted to
         the old memory."""
+        self.target = self._target_weights = None  # the bootstrap must read the new memory too
         return self._fit(agent, optimizer, self.config.dmc_refit_steps)
 
     def _fit(
@@ -173,7 +181,8 @@ class DMC:
             returns, _ = _padded([e["returns"] for e in batch])
             q_values, _ = agent.evaluate(obs, agent.initial_state(batch_size), valid)
             q_taken = q_values.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
-            targets = n_step_targets(returns, q_taken, valid, cfg.gamma, cfg.dmc_n_step)
+            bootstrap = self._bootstrap_q(agent, obs, actions, valid, q_taken)
+            targets = n_step_targets(returns, bootstrap, valid, cfg.gamma, cfg.dmc_n_step)
             q = q_taken[valid]
             loss = 0.5 * (q - targets[valid]).pow(2).mean()
             if not torch.isfinite(loss):
@@ -185,17 +194,49 @@ class DMC:
             loss.backward()
             nn.utils.clip_grad_norm_(agent.parameters(), cfg.max_grad_norm)
             optimizer.step()
+            self.gradient_steps += 1
             losses.append(loss.item())
             q_means.append(q.mean().item())
         return {"q_loss": float(np.mean(losses)), "q_mean": float(np.mean(q_means))}
 
+    def _bootstrap_q(
+        self,
+        agent: ActorCritic,
+        obs: torch.Tensor,
+        actions: torch.Tensor,
+        valid: torch.Tensor,
+        q_taken: torch.Tensor,
+    ) -> torch.Tensor:
+        """Q(h_t, a_t) for the n-step targets, (E, L): the fitted network's own `q_taken`, or
+        with --dmc-target-every K the target network's, refreshed from `agent` every K steps."""
+        every = self.config.dmc_target_every
+        if not every:
+            return q_taken
+        due = self.gradient_steps % every == 0
+        if self.target is None or due:
+            self.target = copy.deepcopy(agent).requires_grad_(False)
+            if self._target_weights is not None and not due:  # resumed between refreshes
+                self.target.load_state_dict(self._target_weights)
+            self._target_weights = None
+        with torch.no_grad():
+            q_values, _ = self.target.evaluate(obs, self.target.initial_state(len(obs)), valid)
+        return q_values.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
+
     def state_dict(self) -> dict:
-        return {"pending": self.assembler.state_dict(), "buffer": list(self.buffer)}
+        target = self.target.state_dict() if self.target is not None else self._target_weights
+        return {
+            "pending": self.assembler.state_dict(),
+            "buffer": list(self.buffer),
+            "gradient_steps": self.gradient_steps,
+            "target": target,
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.assembler.load_state_dict(state["pending"])
         self.buffer.clear()
         self.buffer.extend(state.get("buffer", []))  # checkpoints from before the buffer
+        self.gradient_steps = state.get("gradient_steps", 0)
+        self.target, self._target_weights = None, state.get("target")
 
 
 def _padded(sequences: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
