@@ -167,13 +167,17 @@ class HardAttentionMemory(WindowMemory):
         """See :meth:`Memory.forward`; x (B, L, D+1), state (B, S) -> (B, L, D), (B, S)."""
         features = x[..., : self.input_size]
         keys, key_weights, band, state = self.extend(state, features, self.select(x))
-        attention = band.unsqueeze(0) * key_weights.unsqueeze(1)  # (B, L, W+L), hard 0/1
         values = self.value(keys)  # (B, W+L, D), >= 0: an unselected step reads as 0
         if self.read == "mean":
+            attention = band.unsqueeze(0) * key_weights.unsqueeze(1)  # (B, L, W+L), hard 0/1
             read = attention @ values
             return read / attention.sum(dim=-1, keepdim=True).clamp(min=1.0), state
-        # z (hard in value) scales each value, so the max's gradient reaches the selection
-        return (attention.unsqueeze(-1) * values.unsqueeze(1)).amax(dim=2), state
+        # z (hard in value) scales each value, so the max's gradient reaches the selection.
+        # Step l's band is keys l+1 .. l+W: a sliding window (B, L, D, W) over the scaled values,
+        # not a (B, L, W+L, D) product masked by the band (10x slower forward and backward
+        # with L = 128, W = 32; the band's zeros never win a max of values >= 0).
+        selected = key_weights.unsqueeze(-1) * values  # (B, W+L, D)
+        return selected.unfold(1, self.window, 1)[:, 1:].amax(dim=-1), state
 
     @torch.no_grad()
     def observation_weights(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
