@@ -1,5 +1,7 @@
 """A2C and DMC against hand computation; whole episodes across rollouts; epsilon-greedy."""
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -95,8 +97,6 @@ def test_dmc_regresses_q_of_taken_actions_on_whole_episode_returns(n_step: int):
 def test_dmc_target_network_holds_the_bootstrap_between_refreshes_and_resumes():
     """--dmc-target-every 3: steps 0-2 bootstrap from the agent as it was before step 0, step 3
     from the agent as it is then; a DMC restored from a checkpoint bootstraps the same way."""
-    import copy
-
     config = TrainConfig(
         gamma=0.5, dmc_gradient_steps=1, max_grad_norm=1e9, dmc_n_step=1, dmc_target_every=3
     )

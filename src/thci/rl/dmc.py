@@ -212,18 +212,21 @@ class DMC:
         every = self.config.dmc_target_every
         if not every:
             return q_taken
-        due = self.gradient_steps % every == 0
-        if self.target is None or due:
+        if self.target is None:  # built once (and after a new gate); refreshes copy weights
             self.target = copy.deepcopy(agent).requires_grad_(False)
-            if self._target_weights is not None and not due:  # resumed between refreshes
-                self.target.load_state_dict(self._target_weights)
-            self._target_weights = None
+        if self.gradient_steps % every == 0:
+            self.target.load_state_dict(agent.state_dict())
+        elif self._target_weights is not None:  # resumed between refreshes
+            self.target.load_state_dict(self._target_weights)
+        self._target_weights = None
         with torch.no_grad():
             q_values, _ = self.target.evaluate(obs, self.target.initial_state(len(obs)), valid)
         return q_values.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
 
     def state_dict(self) -> dict:
-        target = self.target.state_dict() if self.target is not None else self._target_weights
+        target = self._target_weights
+        if self.target is not None:  # a snapshot: refreshes copy into the target's tensors
+            target = {name: value.clone() for name, value in self.target.state_dict().items()}
         return {
             "pending": self.assembler.state_dict(),
             "buffer": list(self.buffer),
